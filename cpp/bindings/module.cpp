@@ -1,0 +1,455 @@
+// Python bindings: scene construction from numpy arrays and dicts, render
+// jobs that run with the GIL released, and test entry points for warps/BSDFs.
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include <memory>
+#include <stdexcept>
+
+#include "core/warp.h"
+#include "integrators/path.h"
+#include "render/render.h"
+#include "scene/fresnel.h"
+#include "scene/scene.h"
+
+namespace py = pybind11;
+using namespace mpg;
+
+namespace {
+
+using FArray = py::array_t<float, py::array::c_style | py::array::forcecast>;
+using DArray = py::array_t<double, py::array::c_style | py::array::forcecast>;
+using UArray = py::array_t<uint32_t, py::array::c_style | py::array::forcecast>;
+
+Vec3 vec3(const py::handle& h) {
+  auto a = py::cast<std::vector<float>>(h);
+  if (a.size() == 1) return Vec3(a[0]);
+  if (a.size() != 3) throw std::invalid_argument("expected 3 components");
+  return Vec3(a[0], a[1], a[2]);
+}
+
+Mat4 mat4(const py::handle& h) {
+  DArray a = py::cast<DArray>(h);
+  if (a.ndim() != 2 || a.shape(0) != 4 || a.shape(1) != 4) throw std::invalid_argument("expected a 4x4 matrix");
+  Mat4 m;
+  auto r = a.unchecked<2>();
+  for (int i = 0; i < 4; ++i)
+    for (int j = 0; j < 4; ++j) m[j][i] = float(r(i, j));  // glm is column-major
+  return m;
+}
+
+Mat3 mat3(const py::handle& h) {
+  DArray a = py::cast<DArray>(h);
+  if (a.ndim() != 2 || a.shape(0) != 3 || a.shape(1) != 3) throw std::invalid_argument("expected a 3x3 matrix");
+  Mat3 m;
+  auto r = a.unchecked<2>();
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) m[j][i] = float(r(i, j));
+  return m;
+}
+
+template <typename T>
+T get(const py::dict& d, const char* k, T def) {
+  return d.contains(k) ? py::cast<T>(d[k]) : def;
+}
+
+std::vector<Vec3> rows3(const FArray& a, const char* what) {
+  if (a.ndim() != 2 || a.shape(1) != 3) throw std::invalid_argument(std::string(what) + " must have shape (N, 3)");
+  std::vector<Vec3> v(size_t(a.shape(0)));
+  auto r = a.unchecked<2>();
+  for (ssize_t i = 0; i < a.shape(0); ++i) v[size_t(i)] = Vec3(r(i, 0), r(i, 1), r(i, 2));
+  return v;
+}
+
+int add_texture_bitmap(Scene& s, const FArray& img, const py::object& to_uv, bool bilinear, const std::string& wrap) {
+  if (img.ndim() != 3 || img.shape(2) != 3) throw std::invalid_argument("bitmap must have shape (H, W, 3)");
+  Texture t;
+  t.kind = Texture::Kind::Bitmap;
+  t.height = int(img.shape(0));
+  t.width = int(img.shape(1));
+  if (t.width < 1 || t.height < 1) throw std::invalid_argument("empty bitmap");
+  t.data.assign(img.data(), img.data() + img.size());
+  t.to_uv = mat3(to_uv);
+  t.bilinear = bilinear;
+  t.wrap = wrap == "clamp" ? Texture::Wrap::Clamp : wrap == "mirror" ? Texture::Wrap::Mirror : Texture::Wrap::Repeat;
+  s.bsdfs.textures.push_back(std::move(t));
+  return int(s.bsdfs.textures.size()) - 1;
+}
+
+int add_bsdf(Scene& s, const std::string& type, const py::dict& p) {
+  BSDF b;
+  static const std::map<std::string, BSDFType> types = {
+      {"diffuse", BSDFType::Diffuse},       {"conductor", BSDFType::Conductor},
+      {"roughconductor", BSDFType::RoughConductor}, {"dielectric", BSDFType::Dielectric},
+      {"roughdielectric", BSDFType::RoughDielectric}, {"thindielectric", BSDFType::ThinDielectric},
+      {"plastic", BSDFType::Plastic},       {"twosided", BSDFType::TwoSided},
+      {"normalmap", BSDFType::NormalMap},   {"null", BSDFType::Null}};
+  auto it = types.find(type);
+  if (it == types.end()) throw std::invalid_argument("unknown BSDF type '" + type + "'");
+  b.type = it->second;
+  b.reflectance = get<int>(p, "reflectance", -1);
+  b.specular_reflectance = get<int>(p, "specular_reflectance", -1);
+  b.specular_transmittance = get<int>(p, "specular_transmittance", -1);
+  if (p.contains("eta")) b.eta_c = vec3(p["eta"]);
+  if (p.contains("k")) b.k_c = vec3(p["k"]);
+  const float int_ior = get<float>(p, "int_ior", 1.5046f), ext_ior = get<float>(p, "ext_ior", 1.000277f);
+  if (!(int_ior > 0.f) || !(ext_ior > 0.f)) throw std::invalid_argument("index of refraction must be positive");
+  b.eta = int_ior / ext_ior;
+  b.mf.type = get<std::string>(p, "distribution", "beckmann") == "ggx" ? MicrofacetType::GGX : MicrofacetType::Beckmann;
+  const float alpha = get<float>(p, "alpha", 0.1f);
+  b.mf.ax = std::max(1e-4f, get<float>(p, "alpha_u", alpha));
+  b.mf.ay = std::max(1e-4f, get<float>(p, "alpha_v", alpha));
+  b.mf.sample_visible = get<bool>(p, "sample_visible", true);
+  b.nonlinear = get<bool>(p, "nonlinear", false);
+  b.front = get<int>(p, "front", -1);
+  b.back = get<int>(p, "back", -1);
+  b.nested = get<int>(p, "nested", -1);
+  b.normalmap = get<int>(p, "normalmap", -1);
+  const int ntex = int(s.bsdfs.textures.size()), nb = int(s.bsdfs.nodes.size());
+  for (int t : {b.reflectance, b.specular_reflectance, b.specular_transmittance, b.normalmap})
+    if (t >= ntex) throw std::invalid_argument("texture id out of range");
+  for (int c : {b.front, b.back, b.nested})
+    if (c >= nb) throw std::invalid_argument("child BSDF id out of range");
+  if (b.type == BSDFType::TwoSided && (b.front < 0 || b.back < 0)) throw std::invalid_argument("twosided needs children");
+  if (b.type == BSDFType::NormalMap && (b.nested < 0 || b.normalmap < 0)) throw std::invalid_argument("normalmap needs a BSDF and a texture");
+  if (b.type == BSDFType::Plastic) {
+    b.fdr_int = fresnel_diffuse_reflectance(1.f / b.eta);
+    const float d_mean = b.reflectance >= 0 ? s.bsdfs.textures[size_t(b.reflectance)].mean_value() : 0.5f;
+    const float s_mean = b.specular_reflectance >= 0 ? s.bsdfs.textures[size_t(b.specular_reflectance)].mean_value() : 1.f;
+    b.specular_sampling_weight = s_mean / std::max(1e-6f, d_mean + s_mean);
+  }
+  s.bsdfs.nodes.push_back(b);
+  return nb;
+}
+
+void check_not_committed(const Scene& s) {
+  if (s.committed()) throw std::runtime_error("scene already committed");
+}
+
+py::dict pass_to_dict(PassResult& r) {
+  py::dict out;
+  std::vector<ssize_t> shape = {r.height, r.width, 3};
+  DArray sum(shape), sq(shape);
+  std::copy(r.sum.begin(), r.sum.end(), sum.mutable_data());
+  std::copy(r.sum_sq.begin(), r.sum_sq.end(), sq.mutable_data());
+  out["sum"] = sum;
+  out["sum_sq"] = sq;
+  out["spp"] = r.spp;
+  out["seconds"] = r.seconds;
+  out["cancelled"] = r.cancelled;
+  out["stats"] = r.stats.to_map();
+  return out;
+}
+
+std::shared_ptr<Integrator> make_integrator(const std::string& type, const py::dict& p) {
+  if (type == "path") {
+    PathParams pp;
+    pp.max_depth = get<int>(p, "max_depth", -1);
+    pp.rr_depth = get<int>(p, "rr_depth", 5);
+    pp.hide_emitters = get<bool>(p, "hide_emitters", false);
+    if (pp.max_depth < -1) throw std::invalid_argument("max_depth must be -1 or >= 0");
+    if (pp.rr_depth < 0) throw std::invalid_argument("rr_depth must be >= 0");
+    return std::make_shared<PathIntegrator>(pp);
+  }
+  throw std::invalid_argument("unknown integrator '" + type + "'");
+}
+
+// --- test entry points --------------------------------------------------------
+
+FArray warp_sample(const std::string& name, const FArray& u, float param) {
+  if (u.ndim() != 2 || u.shape(1) != 2) throw std::invalid_argument("u must have shape (N, 2)");
+  const ssize_t n = u.shape(0);
+  FArray out(std::vector<ssize_t>{n, 3});
+  auto r = u.unchecked<2>();
+  auto w = out.mutable_unchecked<2>();
+  for (ssize_t i = 0; i < n; ++i) {
+    const Vec2 s(r(i, 0), r(i, 1));
+    Vec3 v;
+    if (name == "uniform_sphere") v = warp::square_to_uniform_sphere(s);
+    else if (name == "uniform_hemisphere") v = warp::square_to_uniform_hemisphere(s);
+    else if (name == "cosine_hemisphere") v = warp::square_to_cosine_hemisphere(s);
+    else if (name == "uniform_cone") v = warp::square_to_uniform_cone(s, param);
+    else if (name == "vmf") v = warp::square_to_vmf(s, param);
+    else if (name == "uniform_disk") { const Vec2 d = warp::square_to_uniform_disk_concentric(s); v = Vec3(d, 0.f); }
+    else if (name == "uniform_triangle") { const Vec2 b = warp::square_to_uniform_triangle(s); v = Vec3(b, 0.f); }
+    else throw std::invalid_argument("unknown warp '" + name + "'");
+    w(i, 0) = v.x; w(i, 1) = v.y; w(i, 2) = v.z;
+  }
+  return out;
+}
+
+DArray warp_pdf(const std::string& name, const FArray& v, float param) {
+  const auto pts = rows3(v, "v");
+  DArray out(std::vector<ssize_t>{ssize_t(pts.size())});
+  double* o = out.mutable_data();
+  for (size_t i = 0; i < pts.size(); ++i) {
+    const Vec3& x = pts[i];
+    if (name == "uniform_sphere") o[i] = warp::uniform_sphere_pdf();
+    else if (name == "uniform_hemisphere") o[i] = warp::uniform_hemisphere_pdf(x);
+    else if (name == "cosine_hemisphere") o[i] = warp::cosine_hemisphere_pdf(x);
+    else if (name == "uniform_cone") o[i] = warp::uniform_cone_pdf(x, param);
+    else if (name == "vmf") o[i] = warp::vmf_pdf_cos(double(x.z), double(param));
+    else throw std::invalid_argument("unknown warp '" + name + "'");
+  }
+  return out;
+}
+
+BSDFContext test_context(const Scene& s, int id, const Vec3& wi) {
+  if (id < 0 || id >= int(s.bsdfs.nodes.size())) throw std::invalid_argument("BSDF id out of range");
+  SurfaceInteraction si;
+  si.valid = true;
+  si.uv = Vec2(0.5f);
+  si.wi = wi;
+  return s.bsdfs.resolve(id, si);
+}
+
+}  // namespace
+
+PYBIND11_MODULE(_core, m) {
+  m.doc() = "mpg C++ core";
+
+  py::class_<Scene, std::shared_ptr<Scene>>(m, "Scene")
+      .def(py::init<>())
+      .def("add_texture_constant", [](Scene& s, py::object v) {
+        check_not_committed(s);
+        Texture t; t.kind = Texture::Kind::Constant; t.value = vec3(v);
+        s.bsdfs.textures.push_back(t);
+        return int(s.bsdfs.textures.size()) - 1;
+      })
+      .def("add_texture_bitmap", [](Scene& s, const FArray& img, py::object to_uv, bool bilinear, const std::string& wrap) {
+        check_not_committed(s);
+        return add_texture_bitmap(s, img, to_uv, bilinear, wrap);
+      }, py::arg("image"), py::arg("to_uv"), py::arg("bilinear") = true, py::arg("wrap") = "repeat")
+      .def("add_texture_checker", [](Scene& s, py::object c0, py::object c1, py::object to_uv) {
+        check_not_committed(s);
+        Texture t; t.kind = Texture::Kind::Checkerboard; t.color0 = vec3(c0); t.color1 = vec3(c1); t.to_uv = mat3(to_uv);
+        s.bsdfs.textures.push_back(t);
+        return int(s.bsdfs.textures.size()) - 1;
+      })
+      .def("add_bsdf", [](Scene& s, const std::string& type, const py::dict& p) { check_not_committed(s); return add_bsdf(s, type, p); })
+      .def("add_mesh", [](Scene& s, const FArray& pos, const UArray& idx, py::object normals, py::object uvs, int bsdf, bool flip) {
+        check_not_committed(s);
+        Shape sh;
+        sh.kind = Shape::Kind::Mesh;
+        sh.positions = rows3(pos, "positions");
+        if (idx.ndim() != 2 || idx.shape(1) != 3) throw std::invalid_argument("indices must have shape (M, 3)");
+        auto ri = idx.unchecked<2>();
+        sh.indices.resize(size_t(idx.shape(0)));
+        for (ssize_t i = 0; i < idx.shape(0); ++i) {
+          sh.indices[size_t(i)] = glm::uvec3(ri(i, 0), ri(i, 1), ri(i, 2));
+          for (int k = 0; k < 3; ++k)
+            if (ri(i, k) >= sh.positions.size()) throw std::invalid_argument("triangle index out of range");
+        }
+        for (const Vec3& p : sh.positions)
+          if (!is_finite(p)) throw std::invalid_argument("mesh has non-finite vertex positions");
+        if (!normals.is_none()) {
+          sh.normals = rows3(py::cast<FArray>(normals), "normals");
+          if (sh.normals.size() != sh.positions.size()) throw std::invalid_argument("normals count differs from positions");
+        }
+        if (!uvs.is_none()) {
+          FArray a = py::cast<FArray>(uvs);
+          if (a.ndim() != 2 || a.shape(1) != 2 || size_t(a.shape(0)) != sh.positions.size())
+            throw std::invalid_argument("uvs must have shape (N, 2)");
+          auto r = a.unchecked<2>();
+          sh.uvs.resize(size_t(a.shape(0)));
+          for (ssize_t i = 0; i < a.shape(0); ++i) sh.uvs[size_t(i)] = Vec2(r(i, 0), r(i, 1));
+        }
+        if (bsdf < 0 || bsdf >= int(s.bsdfs.nodes.size())) throw std::invalid_argument("BSDF id out of range");
+        sh.bsdf = bsdf;
+        sh.flip_normals = flip;
+        return s.add_shape(std::move(sh));
+      }, py::arg("positions"), py::arg("indices"), py::arg("normals") = py::none(), py::arg("uvs") = py::none(),
+         py::arg("bsdf"), py::arg("flip_normals") = false)
+      .def("add_sphere", [](Scene& s, py::object center, float radius, int bsdf, bool flip) {
+        check_not_committed(s);
+        if (!(radius > 0.f) || !std::isfinite(radius)) throw std::invalid_argument("sphere radius must be positive");
+        if (bsdf < 0 || bsdf >= int(s.bsdfs.nodes.size())) throw std::invalid_argument("BSDF id out of range");
+        Shape sh; sh.kind = Shape::Kind::Sphere; sh.center = vec3(center); sh.radius = radius; sh.bsdf = bsdf; sh.flip_normals = flip;
+        return s.add_shape(std::move(sh));
+      }, py::arg("center"), py::arg("radius"), py::arg("bsdf"), py::arg("flip_normals") = false)
+      .def("add_area_emitter", [](Scene& s, int shape, py::object radiance) {
+        check_not_committed(s);
+        if (shape < 0 || shape >= int(s.shapes.size())) throw std::invalid_argument("shape id out of range");
+        if (!(s.shapes[size_t(shape)].area > 0.f)) throw std::invalid_argument("area emitter on a shape of zero area");
+        Emitter e; e.type = Emitter::Type::Area; e.shape = shape; e.value = vec3(radiance);
+        return s.add_emitter(e);
+      })
+      .def("add_point_emitter", [](Scene& s, py::object intensity, py::object position) {
+        check_not_committed(s);
+        Emitter e; e.type = Emitter::Type::Point; e.value = vec3(intensity); e.position = vec3(position);
+        return s.add_emitter(e);
+      })
+      .def("add_spot_emitter", [](Scene& s, py::object intensity, py::object to_world, float cutoff_deg, float beam_deg) {
+        check_not_committed(s);
+        Emitter e; e.type = Emitter::Type::Spot; e.value = vec3(intensity);
+        const Mat4 m = mat4(to_world);
+        e.position = Vec3(m * Vec4(0, 0, 0, 1));
+        const Vec3 z = glm::normalize(Vec3(m * Vec4(0, 0, 1, 0)));
+        e.frame = Frame::from_normal_tangent(z, Vec3(m * Vec4(1, 0, 0, 0)));
+        e.cutoff = glm::radians(cutoff_deg);
+        const float beam = glm::radians(std::min(beam_deg, cutoff_deg));
+        e.cos_cutoff = std::cos(e.cutoff);
+        e.cos_beam = std::cos(beam);
+        e.inv_transition = e.cutoff > beam ? 1.f / (e.cutoff - beam) : 0.f;
+        return s.add_emitter(e);
+      })
+      .def("add_directional_emitter", [](Scene& s, py::object irradiance, py::object direction) {
+        check_not_committed(s);
+        Emitter e; e.type = Emitter::Type::Directional; e.value = vec3(irradiance);
+        e.direction = glm::normalize(vec3(direction));
+        if (!is_finite(e.direction)) throw std::invalid_argument("directional emitter needs a non-zero direction");
+        return s.add_emitter(e);
+      })
+      .def("add_constant_emitter", [](Scene& s, py::object radiance) {
+        check_not_committed(s);
+        Emitter e; e.type = Emitter::Type::Constant; e.value = vec3(radiance);
+        return s.add_emitter(e);
+      })
+      .def("add_envmap_emitter", [](Scene& s, const FArray& img, float scale, py::object to_world) {
+        check_not_committed(s);
+        Emitter e; e.type = Emitter::Type::Envmap; e.scale = scale;
+        const int tid = add_texture_bitmap(s, img, DArray(std::vector<ssize_t>{3, 3}, std::vector<double>{1,0,0,0,1,0,0,0,1}.data()), true, "repeat");
+        e.env = s.bsdfs.textures[size_t(tid)];
+        s.bsdfs.textures.pop_back();
+        e.env.wrap = Texture::Wrap::Repeat;
+        const Mat4 m = mat4(to_world);
+        e.frame = Frame(glm::normalize(Vec3(m[0])), glm::normalize(Vec3(m[1])), glm::normalize(Vec3(m[2])));
+        // Importance: luminance times sin(theta) per texel.
+        std::vector<float> w(size_t(e.env.width) * e.env.height);
+        for (int y = 0; y < e.env.height; ++y) {
+          const float st = std::sin(kPi * (y + 0.5f) / e.env.height);
+          for (int x = 0; x < e.env.width; ++x) {
+            const float* p = &e.env.data[(size_t(y) * e.env.width + x) * 3];
+            w[size_t(y) * e.env.width + x] = std::max(0.f, luminance(Color(p[0], p[1], p[2]))) * st + 1e-6f * st;
+          }
+        }
+        e.env_dist.build(w, e.env.width, e.env.height);
+        return s.add_emitter(std::move(e));
+      })
+      .def("set_camera", [](Scene& s, py::object to_world, float fov, const std::string& fov_axis, float near_clip,
+                            float far_clip, int width, int height, std::vector<int> crop, const std::string& filter,
+                            float stddev, float radius) {
+        check_not_committed(s);
+        Camera& c = s.camera;
+        if (width < 1 || height < 1) throw std::invalid_argument("film size must be positive");
+        if (!(fov > 0.f && fov < 180.f)) throw std::invalid_argument("fov must be in (0, 180) degrees");
+        if (!(near_clip > 0.f && far_clip > near_clip)) throw std::invalid_argument("need 0 < near_clip < far_clip");
+        if (crop.size() != 4 || crop[0] < 0 || crop[1] < 0 || crop[2] < 1 || crop[3] < 1 ||
+            crop[0] + crop[2] > width || crop[1] + crop[3] > height)
+          throw std::invalid_argument("crop window outside the film");
+        c.to_world = mat4(to_world);
+        c.width = width; c.height = height;
+        c.crop_x = crop[0]; c.crop_y = crop[1]; c.crop_w = crop[2]; c.crop_h = crop[3];
+        c.near_clip = near_clip; c.far_clip = far_clip;
+        const float aspect = float(width) / float(height);
+        const float t = std::tan(glm::radians(fov) * 0.5f);
+        std::string axis = fov_axis;
+        if (axis == "smaller") axis = width <= height ? "x" : "y";
+        if (axis == "larger") axis = width > height ? "x" : "y";
+        if (axis == "x") { c.tan_half_x = t; c.tan_half_y = t / aspect; }
+        else if (axis == "y") { c.tan_half_y = t; c.tan_half_x = t * aspect; }
+        else if (axis == "diagonal") {
+          const float diag = std::sqrt(aspect * aspect + 1.f);
+          c.tan_half_x = t * aspect / diag; c.tan_half_y = t / diag;
+        } else throw std::invalid_argument("unknown fov_axis '" + fov_axis + "'");
+        FilterSampler::Type ft = filter == "gaussian" ? FilterSampler::Type::Gaussian
+                                 : filter == "tent" ? FilterSampler::Type::Tent : FilterSampler::Type::Box;
+        if (filter != "gaussian" && filter != "tent" && filter != "box") throw std::invalid_argument("unknown filter '" + filter + "'");
+        if (!(stddev > 0.f) || !(radius > 0.f)) throw std::invalid_argument("filter size must be positive");
+        c.filter.build(ft, stddev, radius);
+      }, py::arg("to_world"), py::arg("fov"), py::arg("fov_axis"), py::arg("near_clip"), py::arg("far_clip"),
+         py::arg("width"), py::arg("height"), py::arg("crop"), py::arg("filter") = "box", py::arg("stddev") = 0.5f,
+         py::arg("radius") = 1.f)
+      .def("commit", [](Scene& s) { py::gil_scoped_release nogil; s.commit(); })
+      .def_property_readonly("num_shapes", [](const Scene& s) { return s.shapes.size(); })
+      .def_property_readonly("num_emitters", [](const Scene& s) { return s.emitters.size(); })
+      .def_property_readonly("num_bsdfs", [](const Scene& s) { return s.bsdfs.nodes.size(); })
+      .def_property_readonly("bbox", [](const Scene& s) {
+        return std::make_pair(std::vector<float>{s.bbox_min.x, s.bbox_min.y, s.bbox_min.z},
+                              std::vector<float>{s.bbox_max.x, s.bbox_max.y, s.bbox_max.z});
+      })
+      .def("shape_area", [](const Scene& s, int i) { return s.shapes.at(size_t(i)).area; })
+      .def("emitter_pmf", [](const Scene& s, int i) { return s.emitter_pmf(i); })
+      .def("intersect", [](const Scene& s, py::object o, py::object d) {
+        const SurfaceInteraction si = s.intersect(vec3(o), glm::normalize(vec3(d)), 0.f, kInf);
+        py::dict r;
+        r["valid"] = si.valid;
+        if (si.valid) {
+          r["t"] = si.t; r["shape"] = si.shape;
+          r["p"] = std::vector<float>{si.p.x, si.p.y, si.p.z};
+          r["ng"] = std::vector<float>{si.ng.x, si.ng.y, si.ng.z};
+          r["ns"] = std::vector<float>{si.sh.n.x, si.sh.n.y, si.sh.n.z};
+          r["uv"] = std::vector<float>{si.uv.x, si.uv.y};
+        }
+        return r;
+      });
+
+  py::class_<Integrator, std::shared_ptr<Integrator>>(m, "Integrator");
+  m.def("make_integrator", &make_integrator, py::arg("type"), py::arg("params"));
+
+  py::class_<RenderJob, std::shared_ptr<RenderJob>>(m, "RenderJob")
+      .def(py::init([](std::shared_ptr<Scene> scene, std::shared_ptr<Integrator> integ, int spp, uint64_t seed,
+                       uint64_t pass, int threads) {
+        if (!scene->committed()) throw std::runtime_error("scene not committed");
+        if (spp < 1) throw std::invalid_argument("spp must be >= 1");
+        PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
+        auto job = std::make_shared<RenderJob>(scene, integ, cfg);
+        job->start();
+        return job;
+      }), py::arg("scene"), py::arg("integrator"), py::arg("spp"), py::arg("seed") = 0, py::arg("pass_index") = 0,
+         py::arg("threads") = 0)
+      .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
+      .def("cancel", &RenderJob::cancel)
+      .def_property_readonly("progress", &RenderJob::progress)
+      .def("result", [](RenderJob& j) { return pass_to_dict(j.result()); });
+
+  m.def("warp_sample", &warp_sample, py::arg("name"), py::arg("u"), py::arg("param") = 0.f);
+  m.def("warp_pdf", &warp_pdf, py::arg("name"), py::arg("v"), py::arg("param") = 0.f);
+  m.def("bsdf_sample", [](const Scene& s, int id, py::object wi_o, const FArray& u) {
+    const Vec3 wi = glm::normalize(vec3(wi_o));
+    if (u.ndim() != 2 || u.shape(1) != 3) throw std::invalid_argument("u must have shape (N, 3)");
+    const ssize_t n = u.shape(0);
+    const BSDFContext c = test_context(s, id, wi);
+    FArray wo(std::vector<ssize_t>{n, 3}), weight(std::vector<ssize_t>{n, 3});
+    FArray pdf(std::vector<ssize_t>{n});
+    py::array_t<bool> delta(std::vector<ssize_t>{n});
+    auto r = u.unchecked<3 - 1>();
+    auto W = wo.mutable_unchecked<2>(); auto G = weight.mutable_unchecked<2>();
+    auto P = pdf.mutable_unchecked<1>(); auto D = delta.mutable_unchecked<1>();
+    for (ssize_t i = 0; i < n; ++i) {
+      Vec3 w(0.f);
+      const BSDFSample bs = s.bsdfs.sample(c, wi, r(i, 0), Vec2(r(i, 1), r(i, 2)), w);
+      W(i, 0) = w.x; W(i, 1) = w.y; W(i, 2) = w.z;
+      G(i, 0) = bs.weight.x; G(i, 1) = bs.weight.y; G(i, 2) = bs.weight.z;
+      P(i) = bs.pdf; D(i) = bs.delta;
+    }
+    return py::make_tuple(wo, weight, pdf, delta);
+  });
+  m.def("bsdf_eval", [](const Scene& s, int id, py::object wi_o, const FArray& wo) {
+    const Vec3 wi = glm::normalize(vec3(wi_o));
+    const auto dirs = rows3(wo, "wo");
+    const BSDFContext c = test_context(s, id, wi);
+    FArray out(std::vector<ssize_t>{ssize_t(dirs.size()), 3});
+    auto o = out.mutable_unchecked<2>();
+    for (size_t i = 0; i < dirs.size(); ++i) {
+      const Color f = s.bsdfs.eval(c, wi, dirs[i]);
+      o(ssize_t(i), 0) = f.x; o(ssize_t(i), 1) = f.y; o(ssize_t(i), 2) = f.z;
+    }
+    return out;
+  });
+  m.def("bsdf_pdf", [](const Scene& s, int id, py::object wi_o, const FArray& wo) {
+    const Vec3 wi = glm::normalize(vec3(wi_o));
+    const auto dirs = rows3(wo, "wo");
+    const BSDFContext c = test_context(s, id, wi);
+    DArray out(std::vector<ssize_t>{ssize_t(dirs.size())});
+    for (size_t i = 0; i < dirs.size(); ++i) out.mutable_data()[i] = s.bsdfs.pdf(c, wi, dirs[i]);
+    return out;
+  });
+  m.def("fresnel_dielectric", [](float cos_i, float eta) {
+    const DielectricFresnel f = fresnel_dielectric(cos_i, eta);
+    return py::make_tuple(f.F, f.cos_t, f.eta_it, f.eta_ti);
+  });
+  m.def("fresnel_conductor", [](float cos_i, float eta, float k) { return fresnel_conductor_1(cos_i, eta, k); });
+  m.def("fresnel_diffuse_reflectance", &fresnel_diffuse_reflectance);
+}

@@ -1,0 +1,97 @@
+// Discrete 1D distribution and a piecewise-constant 2D distribution (for
+// environment maps), each with sample and pmf/pdf.
+#pragma once
+
+#include <algorithm>
+#include <vector>
+
+#include "core/math.h"
+
+namespace mpg {
+
+class DiscreteDistribution {
+ public:
+  DiscreteDistribution() = default;
+  explicit DiscreteDistribution(const std::vector<float>& weights) { build(weights); }
+
+  void build(const std::vector<float>& weights) {
+    pmf_.assign(weights.size(), 0.f);
+    cdf_.assign(weights.size() + 1, 0.0);
+    double sum = 0.0;
+    for (size_t i = 0; i < weights.size(); ++i) {
+      const double w = (std::isfinite(weights[i]) && weights[i] > 0.f) ? weights[i] : 0.0;
+      sum += w;
+      cdf_[i + 1] = sum;
+    }
+    sum_ = sum;
+    if (sum > 0.0) {
+      for (size_t i = 0; i < weights.size(); ++i) {
+        cdf_[i + 1] /= sum;
+        pmf_[i] = float((cdf_[i + 1] - cdf_[i]));
+      }
+      cdf_.back() = 1.0;
+    }
+  }
+
+  size_t size() const { return pmf_.size(); }
+  bool empty() const { return !(sum_ > 0.0); }
+  double sum() const { return sum_; }
+  float pmf(size_t i) const { return i < pmf_.size() ? pmf_[i] : 0.f; }
+
+  // Returns index; `u` is rescaled to a fresh uniform number in [0,1).
+  size_t sample(float& u) const {
+    const double x = u;
+    auto it = std::upper_bound(cdf_.begin() + 1, cdf_.end(), x);
+    size_t i = size_t(std::distance(cdf_.begin() + 1, it));
+    i = std::min(i, pmf_.size() - 1);
+    // skip zero-probability bins at the end of a run of equal cdf values
+    while (pmf_[i] == 0.f && i + 1 < pmf_.size()) ++i;
+    const double lo = cdf_[i], w = cdf_[i + 1] - cdf_[i];
+    u = w > 0.0 ? float(std::clamp((x - lo) / w, 0.0, double(kOneMinusEps))) : 0.f;
+    return i;
+  }
+
+ private:
+  std::vector<float> pmf_;
+  std::vector<double> cdf_;
+  double sum_ = 0.0;
+};
+
+// Piecewise-constant density on [0,1]^2 given a W x H grid of non-negative values.
+class Distribution2D {
+ public:
+  Distribution2D() = default;
+  void build(const std::vector<float>& values, int width, int height) {
+    w_ = width;
+    h_ = height;
+    rows_.resize(height);
+    std::vector<float> marg(height);
+    for (int y = 0; y < height; ++y) {
+      std::vector<float> row(values.begin() + size_t(y) * width, values.begin() + size_t(y + 1) * width);
+      rows_[y].build(row);
+      marg[y] = float(rows_[y].sum());
+    }
+    marginal_.build(marg);
+  }
+  bool empty() const { return marginal_.empty(); }
+
+  // Returns a point in [0,1)^2 and its density w.r.t. area on [0,1]^2.
+  Vec2 sample(Vec2 u, float& pdf) const {
+    float uy = u.y, ux = u.x;
+    const size_t y = marginal_.sample(uy);
+    const size_t x = rows_[y].sample(ux);
+    pdf = marginal_.pmf(y) * rows_[y].pmf(x) * float(w_) * float(h_);
+    return Vec2((float(x) + ux) / float(w_), (float(y) + uy) / float(h_));
+  }
+  float pdf(const Vec2& p) const {
+    const int x = std::clamp(int(p.x * w_), 0, w_ - 1), y = std::clamp(int(p.y * h_), 0, h_ - 1);
+    return marginal_.pmf(size_t(y)) * rows_[size_t(y)].pmf(size_t(x)) * float(w_) * float(h_);
+  }
+
+ private:
+  int w_ = 0, h_ = 0;
+  std::vector<DiscreteDistribution> rows_;
+  DiscreteDistribution marginal_;
+};
+
+}  // namespace mpg

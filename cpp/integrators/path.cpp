@@ -1,0 +1,101 @@
+#include "integrators/path.h"
+
+namespace mpg {
+
+Color PathIntegrator::Li(const Scene& scene, const Vec3& o_in, const Vec3& d_in, float tmin,
+                         float tmax, PCG32& rng, Stats& st) const {
+  Color L(0.f), beta(1.f);
+  if (p_.max_depth == 0) return L;
+  float eta = 1.f;
+  Vec3 d = d_in;
+  st.rays++;
+  SurfaceInteraction si = scene.intersect(o_in, d, tmin, tmax);
+  Vec3 prev_p = o_in;
+  float prev_pdf = 1.f;
+  bool prev_delta = true;
+  const uint32_t max_depth = uint32_t(p_.max_depth);  // -1 -> unbounded, as Mitsuba 3
+
+  for (uint32_t depth = 0;; ) {
+    const bool show = !(p_.hide_emitters && depth == 0);
+    if (!si.valid) {
+      if (show) {
+        for (int e : scene.infinite_emitters) {
+          const Emitter& em = scene.emitters[size_t(e)];
+          if (em.type == Emitter::Type::Directional) continue;
+          const Color Le = em.eval_env(d);
+          if (is_black(Le)) continue;
+          const float w = prev_delta ? 1.f : power_heuristic(prev_pdf, scene.pdf_emitter_escape(e, d));
+          L += beta * Le * w;
+        }
+      }
+      break;
+    }
+    st.path_vertices++;
+    const Shape& shape = scene.shapes[size_t(si.shape)];
+    if (shape.emitter >= 0 && show) {
+      const Color Le = scene.emitted(si);
+      if (!is_black(Le)) {
+        const float w = prev_delta ? 1.f : power_heuristic(prev_pdf, scene.pdf_emitter_hit(prev_p, si));
+        L += beta * Le * w;
+      }
+    }
+    if (depth + 1 >= max_depth) break;
+    if (int(depth) >= p_.hard_depth_cap) {
+      st.depth_capped++;
+      break;
+    }
+    const BSDFContext ctx = scene.bsdfs.resolve(shape.bsdf, si);
+    if (!ctx.leaf) break;
+
+    // Next-event estimation (not for delta BSDFs).
+    const float u_sel = rng.next_float();
+    const Vec2 u_em(rng.next_float(), rng.next_float());
+    if (!ctx.leaf->is_delta()) {
+      const EmitterSample es = scene.sample_emitter(si.p, u_sel, u_em);
+      if (es.pdf > 0.f && !is_black(es.value)) {
+        const Color f = scene.bsdfs.eval(ctx, si.wi, es.wi);
+        if (!is_black(f)) {
+          const Vec3 org = offset_ray_origin(si.p, si.ng, es.wi);
+          const float dist = std::isinf(es.dist) ? kInf : glm::length(es.p - org) * (1.f - 1e-4f);
+          st.shadow_rays++;
+          if (!scene.occluded(org, es.wi, 0.f, dist)) {
+            const float w = es.delta ? 1.f : power_heuristic(es.pdf, scene.bsdfs.pdf(ctx, si.wi, es.wi));
+            L += beta * f * es.value * (w / es.pdf);
+          }
+        }
+      }
+    }
+
+    // BSDF sampling.
+    const float u1 = rng.next_float();
+    const Vec2 u2(rng.next_float(), rng.next_float());
+    Vec3 wo;
+    const BSDFSample bs = scene.bsdfs.sample(ctx, si.wi, u1, u2, wo);
+    if (!(bs.pdf > 0.f) || is_black(bs.weight)) break;
+    beta *= bs.weight;
+    eta *= bs.eta;
+    prev_p = si.p;
+    prev_pdf = bs.pdf;
+    prev_delta = bs.delta;
+
+    const Vec3 org = offset_ray_origin(si.p, si.ng, wo);
+    d = wo;
+    st.rays++;
+    SurfaceInteraction next = scene.intersect(org, d, 0.f, kInf);
+    ++depth;
+
+    // Russian roulette (Mitsuba 3's rule).
+    const float bmax = max_comp(beta);
+    if (!(bmax > 0.f)) break;
+    const float q = std::min(bmax * eta * eta, 0.95f);
+    const float u_rr = rng.next_float();
+    if (int(depth) >= p_.rr_depth) {
+      if (u_rr >= q) break;
+      beta /= q;
+    }
+    si = next;
+  }
+  return L;
+}
+
+}  // namespace mpg

@@ -1,0 +1,61 @@
+// One render pass over the (cropped) film with a tile scheduler on our own
+// threads. Each sample's random stream is keyed by (seed, pass, pixel, sample),
+// so the image does not depend on the number of threads.
+#pragma once
+
+#include <atomic>
+#include <memory>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "integrators/integrator.h"
+#include "render/stats.h"
+#include "scene/scene.h"
+
+namespace mpg {
+
+struct PassResult {
+  int width = 0, height = 0, spp = 0;
+  std::vector<double> sum, sum_sq;  // height x width x 3: sums of sample values and squares
+  Stats stats;
+  double seconds = 0.0;
+  bool cancelled = false;
+};
+
+struct PassConfig {
+  int spp = 1;
+  uint64_t seed = 0;
+  uint64_t pass = 0;
+  int threads = 0;   // 0: all hardware threads
+  int tile = 16;
+};
+
+class RenderJob {
+ public:
+  RenderJob(std::shared_ptr<const Scene> scene, std::shared_ptr<const Integrator> integrator,
+            PassConfig cfg);
+  ~RenderJob();
+  void start();
+  bool wait_for(double seconds);  // true when finished
+  void cancel() { cancel_.store(true); }
+  double progress() const;        // fraction of tiles done
+  PassResult& result() { return result_; }
+
+ private:
+  void run();
+  std::shared_ptr<const Scene> scene_;
+  std::shared_ptr<const Integrator> integrator_;
+  PassConfig cfg_;
+  PassResult result_;
+  std::atomic<bool> cancel_{false}, done_{false};
+  std::atomic<int> tiles_done_{0};
+  int tiles_total_ = 1;
+  std::thread thread_;
+};
+
+// Synchronous convenience (tests, benchmarks).
+PassResult render_pass(std::shared_ptr<const Scene> scene, std::shared_ptr<const Integrator> integrator,
+                       const PassConfig& cfg);
+
+}  // namespace mpg

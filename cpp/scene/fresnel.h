@@ -1,0 +1,67 @@
+// Exact Fresnel equations for dielectrics and conductors.
+#pragma once
+
+#include <complex>
+
+#include "core/math.h"
+
+namespace mpg {
+
+struct DielectricFresnel {
+  float F;       // reflectance
+  float cos_t;   // cosine of the refracted direction (sign: opposite side of cos_i)
+  float eta_it;  // relative IOR eta_t / eta_i along the direction of travel
+  float eta_ti;  // 1 / eta_it
+};
+
+// eta = eta_int / eta_ext; cos_i > 0 means the incident direction is outside.
+// Unpolarised exact Fresnel (e.g. Born & Wolf, Ch. 1.5; pbrt-v4 Eq. 9.4-9.5).
+inline DielectricFresnel fresnel_dielectric(float cos_i, float eta) {
+  const bool outside = cos_i >= 0.f;
+  const float eta_it = outside ? eta : 1.f / eta;
+  const float eta_ti = 1.f / eta_it;
+  const float ci = std::min(std::abs(cos_i), 1.f);
+  const float sin2_t = eta_ti * eta_ti * (1.f - ci * ci);
+  if (sin2_t >= 1.f) return {1.f, 0.f, eta_it, eta_ti};  // total internal reflection
+  const float ct = safe_sqrt(1.f - sin2_t);
+  const float rs = (ci - eta_it * ct) / (ci + eta_it * ct);
+  const float rp = (eta_it * ci - ct) / (eta_it * ci + ct);
+  float F = 0.5f * (rs * rs + rp * rp);
+  if (eta == 1.f) F = 0.f;
+  return {F, outside ? -ct : ct, eta_it, eta_ti};
+}
+
+// Refract local direction w (pointing away from the surface) given the Fresnel
+// record; the result points away on the other side.
+inline Vec3 refract_local(const Vec3& w, const DielectricFresnel& f) {
+  return Vec3(-f.eta_ti * w.x, -f.eta_ti * w.y, f.cos_t);
+}
+// World-space refraction about normal m (w and m on the same side or not).
+inline Vec3 refract(const Vec3& w, const Vec3& m, float cos_t, float eta_ti) {
+  const float c = glm::dot(w, m);
+  return m * (c * eta_ti + cos_t) - w * eta_ti;
+}
+
+// Conductor Fresnel with complex IOR eta + i k, per channel (pbrt-v4 Eq. 9.6).
+inline float fresnel_conductor_1(float cos_i, float eta, float k) {
+  using C = std::complex<float>;
+  cos_i = std::clamp(cos_i, 0.f, 1.f);
+  const C e(eta, k);
+  const float sin2_i = 1.f - cos_i * cos_i;
+  const C sin2_t = C(sin2_i) / (e * e);
+  const C cos_t = std::sqrt(C(1.f) - sin2_t);
+  const C r_parl = (e * cos_i - cos_t) / (e * cos_i + cos_t);
+  const C r_perp = (C(cos_i) - e * cos_t) / (C(cos_i) + e * cos_t);
+  const float F = 0.5f * (std::norm(r_parl) + std::norm(r_perp));
+  return std::isfinite(F) ? std::clamp(F, 0.f, 1.f) : 1.f;
+}
+inline Color fresnel_conductor(float cos_i, const Color& eta, const Color& k) {
+  return Color(fresnel_conductor_1(cos_i, eta.x, k.x), fresnel_conductor_1(cos_i, eta.y, k.y),
+               fresnel_conductor_1(cos_i, eta.z, k.z));
+}
+
+// Hemispherical average of the dielectric Fresnel reflectance,
+// 2 * integral_0^1 F(mu) mu dmu, by Gauss-Legendre quadrature (used by plastic).
+float fresnel_diffuse_reflectance(float eta);
+
+}  // namespace mpg

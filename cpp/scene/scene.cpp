@@ -1,0 +1,304 @@
+#include "scene/scene.h"
+
+#include <stdexcept>
+
+#include "core/warp.h"
+
+namespace mpg {
+
+namespace {
+thread_local std::string g_embree_error;
+void embree_error(void*, RTCError code, const char* str) {
+  g_embree_error = std::string("Embree error ") + std::to_string(int(code)) + ": " + (str ? str : "");
+}
+}  // namespace
+
+Scene::Scene() {
+  device_ = rtcNewDevice("threads=1");  // BVH build only; rendering threads are ours
+  if (!device_) throw std::runtime_error("could not create an Embree device");
+  rtcSetDeviceErrorFunction(device_, embree_error, nullptr);
+}
+
+Scene::~Scene() {
+  if (rtc_) rtcReleaseScene(rtc_);
+  if (device_) rtcReleaseDevice(device_);
+}
+
+int Scene::add_shape(Shape s) {
+  if (committed_) throw std::runtime_error("scene already committed");
+  s.finalize();
+  shapes.push_back(std::move(s));
+  return int(shapes.size()) - 1;
+}
+
+int Scene::add_emitter(Emitter e) {
+  if (committed_) throw std::runtime_error("scene already committed");
+  emitters.push_back(std::move(e));
+  const int id = int(emitters.size()) - 1;
+  if (emitters.back().type == Emitter::Type::Area) shapes[size_t(emitters.back().shape)].emitter = id;
+  return id;
+}
+
+void Scene::commit() {
+  if (committed_) return;
+  g_embree_error.clear();
+  rtc_ = rtcNewScene(device_);
+  rtcSetSceneBuildQuality(rtc_, RTC_BUILD_QUALITY_HIGH);
+  rtcSetSceneFlags(rtc_, RTC_SCENE_FLAG_ROBUST);
+  bbox_min = Vec3(kInf);
+  bbox_max = Vec3(-kInf);
+  for (size_t i = 0; i < shapes.size(); ++i) {
+    const Shape& s = shapes[i];
+    RTCGeometry g;
+    if (s.kind == Shape::Kind::Sphere) {
+      g = rtcNewGeometry(device_, RTC_GEOMETRY_TYPE_SPHERE_POINT);
+      float* v = (float*)rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT4,
+                                                 4 * sizeof(float), 1);
+      v[0] = s.center.x; v[1] = s.center.y; v[2] = s.center.z; v[3] = s.radius;
+      bbox_min = glm::min(bbox_min, s.center - Vec3(s.radius));
+      bbox_max = glm::max(bbox_max, s.center + Vec3(s.radius));
+    } else {
+      g = rtcNewGeometry(device_, RTC_GEOMETRY_TYPE_TRIANGLE);
+      // One float of padding: Embree may read 16 bytes from the last vertex.
+      float* v = (float*)rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                                                 3 * sizeof(float), s.positions.size() + 1);
+      for (size_t k = 0; k < s.positions.size(); ++k) {
+        v[3 * k] = s.positions[k].x; v[3 * k + 1] = s.positions[k].y; v[3 * k + 2] = s.positions[k].z;
+        bbox_min = glm::min(bbox_min, s.positions[k]);
+        bbox_max = glm::max(bbox_max, s.positions[k]);
+      }
+      unsigned* idx = (unsigned*)rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
+                                                         3 * sizeof(unsigned), s.indices.size());
+      for (size_t k = 0; k < s.indices.size(); ++k) {
+        idx[3 * k] = s.indices[k].x; idx[3 * k + 1] = s.indices[k].y; idx[3 * k + 2] = s.indices[k].z;
+      }
+    }
+    rtcCommitGeometry(g);
+    rtcAttachGeometryByID(rtc_, g, unsigned(i));
+    rtcReleaseGeometry(g);
+  }
+  rtcCommitScene(rtc_);
+  if (!g_embree_error.empty()) throw std::runtime_error(g_embree_error);
+  if (shapes.empty()) { bbox_min = Vec3(-1.f); bbox_max = Vec3(1.f); }
+
+  // Light selection proportional to (approximate) emitted power.
+  const float R = std::max(bound_radius(), 1e-3f);
+  std::vector<float> w;
+  light_index_.assign(emitters.size(), -1);
+  light_list_.clear();
+  infinite_emitters.clear();
+  for (size_t i = 0; i < emitters.size(); ++i) {
+    Emitter& e = emitters[i];
+    float p = 0.f;
+    switch (e.type) {
+      case Emitter::Type::Area: p = mean(e.value) * shapes[size_t(e.shape)].area * kPi; break;
+      case Emitter::Type::Point: p = 4.f * kPi * mean(e.value); break;
+      case Emitter::Type::Spot: p = 2.f * kPi * (1.f - 0.5f * (e.cos_cutoff + e.cos_beam)) * mean(e.value); break;
+      case Emitter::Type::Directional: p = kPi * R * R * mean(e.value); break;
+      case Emitter::Type::Constant: p = 4.f * kPi * kPi * R * R * mean(e.value); break;
+      case Emitter::Type::Envmap: p = 4.f * kPi * kPi * R * R * e.env.mean_value() * e.scale; break;
+    }
+    if (e.is_infinite()) infinite_emitters.push_back(int(i));
+    e.power = p;
+    if (std::isfinite(p) && p > 0.f) {
+      light_index_[i] = int(light_list_.size());
+      light_list_.push_back(int(i));
+      w.push_back(p);
+    }
+  }
+  light_dist_.build(w);
+  committed_ = true;
+}
+
+SurfaceInteraction Scene::intersect(const Vec3& o, const Vec3& d, float tmin, float tmax) const {
+  SurfaceInteraction si;
+  RTCIntersectContext ctx;
+  rtcInitIntersectContext(&ctx);
+  RTCRayHit rh;
+  rh.ray.org_x = o.x; rh.ray.org_y = o.y; rh.ray.org_z = o.z;
+  rh.ray.dir_x = d.x; rh.ray.dir_y = d.y; rh.ray.dir_z = d.z;
+  rh.ray.tnear = tmin; rh.ray.tfar = tmax;
+  rh.ray.mask = 0xffffffffu; rh.ray.flags = 0; rh.ray.time = 0.f;
+  rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
+  rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+  rtcIntersect1(rtc_, &ctx, &rh);
+  if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return si;
+
+  const Shape& s = shapes[rh.hit.geomID];
+  si.valid = true;
+  si.t = rh.ray.tfar;
+  si.shape = int(rh.hit.geomID);
+  si.prim = int(rh.hit.primID);
+  si.wi = -d;
+  Vec3 ns;
+  if (s.kind == Shape::Kind::Sphere) {
+    const Vec3 p = o + d * si.t;
+    const Vec3 q = glm::normalize(p - s.center);
+    si.p = s.center + q * s.radius;  // reproject onto the exact sphere
+    si.ng = q;
+    ns = q;
+    // Mitsuba 3's sphere parameterisation: u = phi / 2pi, v = theta / pi.
+    float phi = std::atan2(q.y, q.x);
+    if (phi < 0.f) phi += 2.f * kPi;
+    const float theta = safe_acos(q.z);
+    si.uv = Vec2(phi * kInv2Pi, theta * kInvPi);
+    const float sin_t = std::sin(theta);
+    si.dpdu = Vec3(-q.y, q.x, 0.f) * (2.f * kPi * s.radius);
+    if (!(glm::dot(si.dpdu, si.dpdu) > 1e-20f)) si.dpdu = Vec3(1.f, 0.f, 0.f);
+    const float cp = std::cos(phi), sp = std::sin(phi);
+    si.dpdv = Vec3(q.z * cp, q.z * sp, -sin_t) * (kPi * s.radius);
+  } else {
+    const glm::uvec3 t = s.indices[rh.hit.primID];
+    const float b1 = rh.hit.u, b2 = rh.hit.v, b0 = 1.f - b1 - b2;
+    const Vec3 p0 = s.positions[t.x], p1 = s.positions[t.y], p2 = s.positions[t.z];
+    si.p = p0 * b0 + p1 * b1 + p2 * b2;
+    const Vec3 e1 = p1 - p0, e2 = p2 - p0;
+    si.ng = glm::normalize(glm::cross(e1, e2));
+    if (!s.normals.empty()) {
+      ns = s.normals[t.x] * b0 + s.normals[t.y] * b1 + s.normals[t.z] * b2;
+      const float l = glm::length(ns);
+      ns = l > 0.f ? ns / l : si.ng;
+    } else {
+      ns = si.ng;
+    }
+    bool have_dp = false;
+    if (!s.uvs.empty()) {
+      const Vec2 uv0 = s.uvs[t.x], uv1 = s.uvs[t.y], uv2 = s.uvs[t.z];
+      si.uv = uv0 * b0 + uv1 * b1 + uv2 * b2;
+      const Vec2 d1 = uv1 - uv0, d2 = uv2 - uv0;
+      const float det = d1.x * d2.y - d1.y * d2.x;
+      if (std::abs(det) > 1e-12f) {
+        const float inv = 1.f / det;
+        si.dpdu = (d2.y * e1 - d1.y * e2) * inv;
+        si.dpdv = (-d2.x * e1 + d1.x * e2) * inv;
+        have_dp = is_finite(si.dpdu) && is_finite(si.dpdv);
+      }
+    } else {
+      si.uv = Vec2(b1, b2);
+    }
+    if (!have_dp) {
+      si.dpdu = e1;
+      si.dpdv = e2;
+    }
+  }
+  if (s.flip_normals) {
+    si.ng = -si.ng;
+    ns = -ns;
+  }
+  si.sh = Frame::from_normal_tangent(ns, si.dpdu);
+  return si;
+}
+
+bool Scene::occluded(const Vec3& o, const Vec3& d, float tmin, float tmax) const {
+  RTCIntersectContext ctx;
+  rtcInitIntersectContext(&ctx);
+  RTCRay r;
+  r.org_x = o.x; r.org_y = o.y; r.org_z = o.z;
+  r.dir_x = d.x; r.dir_y = d.y; r.dir_z = d.z;
+  r.tnear = tmin; r.tfar = tmax;
+  r.mask = 0xffffffffu; r.flags = 0; r.time = 0.f;
+  rtcOccluded1(rtc_, &ctx, &r);
+  return r.tfar < 0.f;
+}
+
+bool Scene::visible(const Vec3& p, const Vec3& ng_p, const Vec3& q, const Vec3& ng_q) const {
+  Vec3 d = q - p;
+  const Vec3 o = offset_ray_origin(p, ng_p, d);
+  const Vec3 target = offset_ray_origin(q, ng_q, -d);
+  d = target - o;
+  const float len = glm::length(d);
+  if (!(len > 0.f)) return true;
+  return !occluded(o, d / len, 0.f, len * (1.f - 1e-4f));
+}
+
+EmitterSample Scene::sample_emitter(const Vec3& ref, float u_sel, const Vec2& u) const {
+  EmitterSample es;
+  if (light_dist_.empty()) return es;
+  const size_t k = light_dist_.sample(u_sel);
+  const float psel = light_dist_.pmf(k);
+  const int ei = light_list_[k];
+  const Emitter& e = emitters[size_t(ei)];
+  es.emitter = ei;
+  switch (e.type) {
+    case Emitter::Type::Area: {
+      const Shape& s = shapes[size_t(e.shape)];
+      Vec3 p, n;
+      s.sample_position(u, p, n);
+      const Vec3 d = p - ref;
+      const float d2 = glm::dot(d, d);
+      if (!(d2 > 0.f)) return es;
+      es.dist = std::sqrt(d2);
+      es.wi = d / es.dist;
+      const float cos_l = -glm::dot(es.wi, n);
+      if (cos_l <= 0.f) return es;  // one-sided emitter seen from behind
+      es.p = p;
+      es.value = e.value;
+      es.pdf = psel * d2 / (cos_l * s.area);
+      return es;
+    }
+    case Emitter::Type::Point:
+    case Emitter::Type::Spot: {
+      const Vec3 d = e.position - ref;
+      const float d2 = glm::dot(d, d);
+      if (!(d2 > 0.f)) return es;
+      es.dist = std::sqrt(d2);
+      es.wi = d / es.dist;
+      es.p = e.position;
+      float f = 1.f;
+      if (e.type == Emitter::Type::Spot) f = e.spot_falloff(e.frame.to_local(-es.wi));
+      es.value = e.value * (f / d2);
+      es.pdf = psel;
+      es.delta = true;
+      return es;
+    }
+    case Emitter::Type::Directional:
+      es.wi = -e.direction;
+      es.value = e.value;
+      es.pdf = psel;
+      es.delta = true;
+      return es;
+    case Emitter::Type::Constant:
+      es.wi = warp::square_to_uniform_sphere(u);
+      es.value = e.value;
+      es.pdf = psel * kInv4Pi;
+      return es;
+    case Emitter::Type::Envmap: {
+      float pdf_uv;
+      const Vec2 uv = e.env_dist.sample(u, pdf_uv);
+      const float st = std::sin(uv.y * kPi);
+      if (!(pdf_uv > 0.f) || !(st > 1e-7f)) return es;
+      es.wi = e.env_dir(uv);
+      es.value = e.env.eval(uv) * e.scale;
+      es.pdf = psel * pdf_uv / (2.f * kPi * kPi * st);
+      return es;
+    }
+  }
+  return es;
+}
+
+float Scene::pdf_emitter_hit(const Vec3& ref, const SurfaceInteraction& si) const {
+  const Shape& s = shapes[size_t(si.shape)];
+  if (s.emitter < 0) return 0.f;
+  const int li = light_index_[size_t(s.emitter)];
+  if (li < 0) return 0.f;
+  const Vec3 d = si.p - ref;
+  const float d2 = glm::dot(d, d);
+  const float cos_l = std::abs(glm::dot(si.ng, d)) / std::sqrt(d2);
+  if (!(cos_l > 0.f)) return 0.f;
+  return light_dist_.pmf(size_t(li)) * d2 / (cos_l * s.area);
+}
+
+float Scene::pdf_emitter_escape(int e, const Vec3& d) const {
+  const int li = light_index_[size_t(e)];
+  if (li < 0) return 0.f;
+  return light_dist_.pmf(size_t(li)) * emitters[size_t(e)].pdf_env(d);
+}
+
+Color Scene::emitted(const SurfaceInteraction& si) const {
+  const Shape& s = shapes[size_t(si.shape)];
+  if (s.emitter < 0) return Color(0.f);
+  if (glm::dot(si.wi, si.ng) <= 0.f) return Color(0.f);
+  return emitters[size_t(s.emitter)].value;
+}
+
+}  // namespace mpg

@@ -1,0 +1,72 @@
+// The scene: shapes in an Embree 3 BVH, BSDFs, emitters, camera.
+#pragma once
+
+#include <embree3/rtcore.h>
+
+#include <string>
+#include <vector>
+
+#include "core/distribution.h"
+#include "scene/bsdf.h"
+#include "scene/camera.h"
+#include "scene/emitter.h"
+#include "scene/interaction.h"
+#include "scene/shape.h"
+
+namespace mpg {
+
+struct EmitterSample {
+  Vec3 wi{0.f};        // unit direction from the reference point toward the light
+  float dist = kInf;   // distance to the light point (inf for infinite emitters)
+  Vec3 p{0.f};         // point on the light (finite emitters)
+  Color value{0.f};    // incident radiance (or I / r^2, E for delta lights)
+  float pdf = 0.f;     // solid angle density times selection probability; for delta lights the probability
+  bool delta = false;
+  int emitter = -1;
+};
+
+class Scene {
+ public:
+  Scene();
+  ~Scene();
+  Scene(const Scene&) = delete;
+  Scene& operator=(const Scene&) = delete;
+
+  BSDFSet bsdfs;
+  std::vector<Shape> shapes;
+  std::vector<Emitter> emitters;
+  Camera camera;
+
+  int add_shape(Shape s);
+  int add_emitter(Emitter e);
+  void commit();  // builds the BVH and light selection; throws std::runtime_error
+  bool committed() const { return committed_; }
+
+  SurfaceInteraction intersect(const Vec3& o, const Vec3& d, float tmin, float tmax) const;
+  bool occluded(const Vec3& o, const Vec3& d, float tmin, float tmax) const;
+  // Shadow ray between two surface points (offsets applied at both ends).
+  bool visible(const Vec3& p, const Vec3& ng_p, const Vec3& q, const Vec3& ng_q) const;
+
+  EmitterSample sample_emitter(const Vec3& ref, float u_sel, const Vec2& u) const;
+  // Density (solid angle at ref, selection included) that sample_emitter produced
+  // the hit `si` on an area emitter, or an escaped direction for infinite emitter e.
+  float pdf_emitter_hit(const Vec3& ref, const SurfaceInteraction& si) const;
+  float pdf_emitter_escape(int e, const Vec3& d) const;
+  Color emitted(const SurfaceInteraction& si) const;  // area radiance toward si.wi
+  float emitter_pmf(int e) const { return light_dist_.pmf(size_t(light_index_[size_t(e)])); }
+
+  Vec3 bbox_min{0.f}, bbox_max{0.f};
+  float bound_radius() const { return 0.5f * glm::length(bbox_max - bbox_min); }
+  Vec3 bound_center() const { return 0.5f * (bbox_min + bbox_max); }
+  std::vector<int> infinite_emitters;
+
+ private:
+  RTCDevice device_ = nullptr;
+  RTCScene rtc_ = nullptr;
+  bool committed_ = false;
+  DiscreteDistribution light_dist_;
+  std::vector<int> light_list_;   // selection index -> emitter
+  std::vector<int> light_index_;  // emitter -> selection index (-1 if never selected)
+};
+
+}  // namespace mpg
