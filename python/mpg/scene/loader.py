@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import os
 import re
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 
@@ -90,7 +90,7 @@ def _numbers(node: Node, s: str, what: str) -> list[float]:
     return vals
 
 
-def _float(node: Node, s: Optional[str], what: str) -> float:
+def _float(node: Node, s: str | None, what: str) -> float:
     if s is None:
         raise node.error(f"{what}: missing 'value' attribute")
     try:
@@ -102,7 +102,7 @@ def _float(node: Node, s: Optional[str], what: str) -> float:
     return v
 
 
-def _int(node: Node, s: Optional[str], what: str) -> int:
+def _int(node: Node, s: str | None, what: str) -> int:
     if s is None:
         raise node.error(f"{what}: missing 'value' attribute")
     try:
@@ -111,7 +111,7 @@ def _int(node: Node, s: Optional[str], what: str) -> int:
         raise node.error(f"{what}: expected an integer, got '{s}'") from None
 
 
-def _bool(node: Node, s: Optional[str], what: str) -> bool:
+def _bool(node: Node, s: str | None, what: str) -> bool:
     if s is None:
         raise node.error(f"{what}: missing 'value' attribute")
     t = s.strip().lower()
@@ -179,7 +179,7 @@ def rotate(axis, angle_deg: float) -> np.ndarray:
     return m
 
 
-def lookat(origin, target, up) -> Optional[np.ndarray]:
+def lookat(origin, target, up) -> np.ndarray | None:
     """Mitsuba's look-at: columns (left, up', dir, origin); None if degenerate."""
     o, t, u = (np.asarray(x, dtype=np.float64) for x in (origin, target, up))
     d = t - o
@@ -271,7 +271,7 @@ def parse_transform(node: Node) -> np.ndarray:
 # Property access with bookkeeping of what a plugin accepts
 
 class Props:
-    def __init__(self, loader: "_Loader", node: Node):
+    def __init__(self, loader: _Loader, node: Node):
         self.loader = loader
         self.node = node
         self.props: dict[str, Node] = {}
@@ -285,7 +285,7 @@ class Props:
             if c.tag == "ref":
                 _check_attrs(c, {"id", "name"})
                 target = loader.resolve_ref(c)
-                if name is not None:
+                if name is not None and target.tag in ("texture", "spectrum", "rgb"):
                     self._add_named(name, target, c)
                 else:
                     self.unnamed.append((target, c))
@@ -303,7 +303,7 @@ class Props:
                     raise c.error(f"parameter '{name}' is given twice")
                 self.props[name] = c
             elif c.tag in OBJECT_TAGS:
-                if name is not None:
+                if name is not None and c.tag == "texture":
                     self._add_named(name, c, c)
                 else:
                     self.unnamed.append((c, c))
@@ -323,7 +323,7 @@ class Props:
         self.asked.add(name)
         return name in self.props
 
-    def _take(self, name: str, tags: tuple[str, ...], kind: str) -> Optional[Node]:
+    def _take(self, name: str, tags: tuple[str, ...], kind: str) -> Node | None:
         self.asked.add(name)
         p = self.props.get(name)
         if p is None:
@@ -336,19 +336,19 @@ class Props:
                      else {"name", "value", "x", "y", "z"})
         return p
 
-    def float(self, name: str, default: Optional[float]) -> Optional[float]:
+    def float(self, name: str, default: float | None) -> float | None:
         p = self._take(name, ("float", "integer"), "a <float>")
         return default if p is None else _float(p, p.get("value"), f"parameter '{name}'")
 
-    def int(self, name: str, default: Optional[int]) -> Optional[int]:
+    def int(self, name: str, default: int | None) -> int | None:
         p = self._take(name, ("integer",), "an <integer>")
         return default if p is None else _int(p, p.get("value"), f"parameter '{name}'")
 
-    def bool(self, name: str, default: Optional[bool]) -> Optional[bool]:
+    def bool(self, name: str, default: bool | None) -> bool | None:
         p = self._take(name, ("boolean",), "a <boolean>")
         return default if p is None else _bool(p, p.get("value"), f"parameter '{name}'")
 
-    def string(self, name: str, default: Optional[str], choices: Optional[tuple] = None) -> Optional[str]:
+    def string(self, name: str, default: str | None, choices: tuple | None = None) -> str | None:
         p = self._take(name, ("string",), "a <string>")
         if p is None:
             return default
@@ -359,17 +359,17 @@ class Props:
             raise p.error(f"parameter '{name}' is '{v}', expected one of: {', '.join(choices)}")
         return v
 
-    def point(self, name: str, default) -> Optional[np.ndarray]:
+    def point(self, name: str, default) -> np.ndarray | None:
         p = self._take(name, ("point", "vector"), "a <point> or <vector>")
         if p is None:
             return None if default is None else np.asarray(default, dtype=np.float64)
         return _finite(p, _vec3_attr(p, f"parameter '{name}'", 0.0), f"parameter '{name}'")
 
-    def transform(self, name: str) -> Optional[np.ndarray]:
+    def transform(self, name: str) -> np.ndarray | None:
         p = self._take(name, ("transform",), "a <transform>")
         return None if p is None else parse_transform(p)
 
-    def color(self, name: str, default) -> Optional[np.ndarray]:
+    def color(self, name: str, default) -> np.ndarray | None:
         """A constant spectrum as linear RGB."""
         self.asked.add(name)
         if name in self.named:
@@ -408,7 +408,7 @@ class Props:
                 out.append((obj, where))
         return out
 
-    def named_object(self, name: str, tag: str) -> Optional[Node]:
+    def named_object(self, name: str, tag: str) -> Node | None:
         self.asked.add(name)
         if name not in self.props:
             return None
@@ -490,7 +490,7 @@ class _Loader:
             return ", ".join(str(x) for x in v)
         return str(v)
 
-    def warn(self, node: Optional[Node], msg: str) -> None:
+    def warn(self, node: Node | None, msg: str) -> None:
         self.warnings.append(f"{node.file}:{node.line}: {msg}" if node is not None else msg)
 
     def pos(self, node: Node) -> SourcePos:
@@ -690,7 +690,7 @@ class _Loader:
         return tex
 
     @staticmethod
-    def _uv3(m: Optional[np.ndarray]) -> np.ndarray:
+    def _uv3(m: np.ndarray | None) -> np.ndarray:
         if m is None:
             return np.eye(3)
         return m[np.ix_([0, 1, 3], [0, 1, 3])].copy()
@@ -1053,19 +1053,23 @@ class _Loader:
             mesh = shp.cylinder()
         else:  # pragma: no cover - guarded above
             raise node.error(f"unsupported shape type '{t}'")
-        return self._finish_mesh(sd, mesh, m, face_normals, node)
+        src = p.props.get("filename", node)
+        return self._finish_mesh(sd, mesh, m, face_normals, node, src)
 
     def _finish_mesh(self, sd: ShapeDesc, mesh: shp.Mesh, m: np.ndarray, face_normals: bool,
-                     node: Node) -> ShapeDesc:
+                     node: Node, src: Node) -> ShapeDesc:
+        """Validate, transform and convert a mesh; `src` is the element naming its file."""
+        fname = src.get("value", "") if src is not node else ""
+        what = f"mesh '{fname}'" if fname else "mesh"
         if mesh.positions.shape[0] == 0 or mesh.indices.shape[0] == 0:
-            raise node.error("mesh is empty")
+            raise src.error(f"{what} is empty")
         if not np.all(np.isfinite(mesh.positions)):
-            raise node.error("mesh contains NaN or infinite vertex positions")
+            raise src.error(f"{what} contains NaN or infinite vertex positions")
         if mesh.indices.min() < 0 or mesh.indices.max() >= len(mesh.positions):
-            raise node.error(f"mesh face index out of range (the mesh has {len(mesh.positions)} "
-                             "vertices)")
+            raise src.error(f"{what}: face index out of range (the mesh has "
+                            f"{len(mesh.positions)} vertices)")
         if mesh.uvs is not None and not np.all(np.isfinite(mesh.uvs)):
-            raise node.error("mesh contains NaN or infinite texture coordinates")
+            raise src.error(f"{what} contains NaN or infinite texture coordinates")
         mesh = shp.transform_mesh(mesh, m)
         if not np.all(np.isfinite(mesh.positions)):
             raise node.error("mesh positions are not finite after to_world")
@@ -1182,7 +1186,7 @@ class _Loader:
             if fl.tag not in ("string", "float"):
                 raise fl.error("focal_length must be a <string> like \"50mm\" or a <float>")
             s = (fl.get("value") or "").strip()
-            f = _float(fl, s[:-2] if s.endswith("mm") else s, "focal_length")
+            f = _float(fl, s.removesuffix("mm"), "focal_length")
             if not f > 0:
                 raise fl.error("focal_length must be positive")
             fov = math.degrees(2 * math.atan(math.hypot(36.0, 24.0) / (2 * f)))
@@ -1258,7 +1262,7 @@ class _Loader:
         return IntegratorDesc(type=out_type, params=params, source=self.pos(node))
 
     # -- scene ----------------------------------------------------------------
-    def build_scene(self, root: Node, filename: Optional[str]) -> SceneDesc:
+    def build_scene(self, root: Node, filename: str | None) -> SceneDesc:
         self.check_root(root)
         nodes = self.expand(root.children, True)
         scene = SceneDesc(filename=filename, warnings=self.warnings)
@@ -1339,8 +1343,8 @@ class _Loader:
 
 # ---------------------------------------------------------------------------
 
-def load_string(xml: str | bytes, base_dir: Optional[str] = None,
-                substitute_missing_textures: bool = False, *, source_name: Optional[str] = None,
+def load_string(xml: str | bytes, base_dir: str | None = None,
+                substitute_missing_textures: bool = False, *, source_name: str | None = None,
                 **params: Any) -> SceneDesc:
     """Load a scene from XML text. Relative paths resolve against base_dir
     (default: the current directory). params override <default> values."""

@@ -13,7 +13,6 @@ import struct
 import zlib
 from dataclasses import dataclass
 from itertools import chain
-from typing import Optional
 
 import numpy as np
 
@@ -24,8 +23,8 @@ from mpg.errors import SceneError
 class Mesh:
     positions: np.ndarray                  # (N, 3) float64
     indices: np.ndarray                    # (M, 3) int64
-    normals: Optional[np.ndarray] = None   # (N, 3) float64
-    uvs: Optional[np.ndarray] = None       # (N, 2) float64
+    normals: np.ndarray | None = None   # (N, 3) float64
+    uvs: np.ndarray | None = None       # (N, 2) float64
     normals_partial: bool = False          # some OBJ corners had no normal
 
 
@@ -119,7 +118,7 @@ def read_obj(path: str, flip_tex_coords: bool = True) -> Mesh:
             f_line.append(ln)
             f_counts.append((len(V), len(VT), len(VN)))
 
-    def table(rows: list[str], k: int, what: str, pad: Optional[float] = None) -> np.ndarray:
+    def table(rows: list[str], k: int, what: str, pad: float | None = None) -> np.ndarray:
         if not rows:
             return np.zeros((0, k))
         arr = _parse_floats(" ".join(rows), path, what)
@@ -205,9 +204,9 @@ def read_obj(path: str, flip_tex_coords: bool = True) -> Mesh:
     nt, nn = totals[1] + 1, totals[2] + 1
     if totals[0] * nt * nn < 2 ** 62:
         key = resolved[:, 0] * (nt * nn) + (resolved[:, 1] + 1) * nn + (resolved[:, 2] + 1)
-        uniq, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+        _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
     else:
-        uniq, first, inverse = np.unique(resolved, axis=0, return_index=True, return_inverse=True)
+        _, first, inverse = np.unique(resolved, axis=0, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
     rep = resolved[first]
     positions = pos[rep[:, 0]]

@@ -68,7 +68,7 @@ def _read_exr(path: str) -> np.ndarray:
             img = np.array(img, dtype=np.float32)
     except SceneError:
         raise
-    except Exception as e:  # the OpenEXR binding raises plain exceptions on corrupt files
+    except Exception as e:  # noqa: BLE001 - the OpenEXR binding raises plain exceptions
         raise SceneError(f"could not read EXR image: {e}", path) from None
     return _to_rgb(img)
 
@@ -90,7 +90,7 @@ def _read_ldr(path: str, raw: bool) -> np.ndarray:
         raise SceneError(f"could not read image: {e}", path) from None
     if a.dtype == np.uint8:
         a = _to_rgb(a)
-        return a.astype(np.float32) / 255.0 if raw else _srgb_lut8()[a]
+        return a.astype(np.float32) / 255.0 if raw else np.take(_srgb_lut8(), a.astype(np.intp))
     if mode.startswith("I;16") or a.dtype == np.uint16:
         x = _to_rgb(a.astype(np.float32) / 65535.0)
     elif mode == "F" or a.dtype.kind == "f":

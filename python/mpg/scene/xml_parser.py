@@ -8,7 +8,6 @@ SceneError carrying expat's line.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
 from xml.parsers import expat
 
 from mpg.errors import SceneError
@@ -20,9 +19,9 @@ class Node:
     attrib: dict[str, str]
     line: int
     file: str
-    children: list["Node"] = field(default_factory=list)
+    children: list[Node] = field(default_factory=list)
 
-    def get(self, key: str, default: Optional[str] = None) -> Optional[str]:
+    def get(self, key: str, default: str | None = None) -> str | None:
         return self.attrib.get(key, default)
 
     def error(self, message: str) -> SceneError:
