@@ -1,0 +1,134 @@
+"""mpg-render: render a Mitsuba scene file (or the built-in default scene)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+from typing import Optional, Sequence
+
+from mpg.errors import MPGError
+
+
+def _parse_define(s: str) -> tuple[str, str]:
+    if "=" not in s:
+        raise argparse.ArgumentTypeError(f"-D expects name=value, got '{s}'")
+    k, v = s.split("=", 1)
+    if not k:
+        raise argparse.ArgumentTypeError(f"-D expects name=value, got '{s}'")
+    return k, v
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="mpg-render",
+        description="Render a Mitsuba 2/3 scene file with mpg. Without SCENE, renders the "
+        "built-in default scene (a glass sphere casting a caustic).",
+    )
+    p.add_argument("scene", nargs="?", help="scene file (Mitsuba XML)")
+    p.add_argument("-o", "--output", help="output EXR (default: out/<scene name>.exr)")
+    p.add_argument("-D", dest="defines", action="append", type=_parse_define, default=[],
+                   metavar="NAME=VALUE", help="override a <default> value of the scene")
+    p.add_argument("--integrator", help="integrator name (default: the scene's)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--spp", type=int, help="samples per pixel (default: the scene's sampler)")
+    g.add_argument("--time", type=float, help="time budget in seconds")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--threads", type=int, help="render threads (default: all cores)")
+    p.add_argument("--preview", help="also write a tone-mapped PNG (default: beside the EXR)")
+    p.add_argument("--no-preview", action="store_true", help="do not write a PNG")
+    p.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
+    p.add_argument("--stats", help="write the render statistics as JSON")
+    p.add_argument("--substitute-missing-textures", action="store_true",
+                   help="replace missing texture files by neutral stand-ins (with a warning)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
+    return p
+
+
+def _raise_interrupt(signum, frame):  # SIGTERM behaves like Ctrl-C: stop and write
+    raise KeyboardInterrupt
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return _run(args)
+    except MPGError as e:
+        print(f"mpg-render: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("\nmpg-render: interrupted before rendering started; nothing written",
+              file=sys.stderr)
+        return 130
+
+
+def _run(args) -> int:
+    import mpg
+
+    if args.spp is not None and args.spp < 1:
+        raise MPGError(f"--spp must be at least 1, got {args.spp}")
+    if args.time is not None and not args.time > 0:
+        raise MPGError(f"--time must be positive, got {args.time}")
+    if args.threads is not None and args.threads < 1:
+        raise MPGError(f"--threads must be at least 1, got {args.threads}")
+    path = args.scene or mpg.default_scene_path()
+    name = "default" if args.scene is None else os.path.splitext(os.path.basename(path))[0]
+    if args.scene is not None and not os.path.isfile(path):
+        raise MPGError(f"{path}: no such scene file")
+    out = args.output or os.path.join("out", name + ".exr")
+    if not out.lower().endswith(".exr"):
+        raise MPGError(f"-o {out}: the output must be an .exr file (use --preview for PNG)")
+    preview = None if args.no_preview else (args.preview or os.path.splitext(out)[0] + ".png")
+
+    defines = dict(args.defines)
+    scene = mpg.load_file(path, substitute_missing_textures=args.substitute_missing_textures,
+                          **defines)
+    for w in scene.warnings:
+        print(f"mpg-render: warning: {w}", file=sys.stderr)
+    if not args.quiet:
+        cam = scene.desc.camera
+        print(f"mpg-render: {path}: {len(scene.desc.shapes)} shapes, "
+              f"{cam.crop[2]}x{cam.crop[3]} pixels", file=sys.stderr)
+    old = signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        img = mpg.render(scene, integrator=args.integrator, spp=args.spp, time=args.time,
+                         seed=args.seed, threads=args.threads,
+                         progress=False if args.quiet else None)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    for w in img.stats.get("warnings", []):
+        if w not in scene.warnings:
+            print(f"mpg-render: warning: {w}", file=sys.stderr)
+    img.write_exr(out)
+    if preview:
+        img.write_png(preview, exposure=args.exposure)
+    if args.stats:
+        stats = dict(img.stats)
+        stats["scene"] = os.path.abspath(path)
+        stats["output"] = os.path.abspath(out)
+        os.makedirs(os.path.dirname(os.path.abspath(args.stats)), exist_ok=True)
+        with open(args.stats, "w") as f:
+            json.dump(stats, f, indent=2, default=str)
+    st = img.stats
+    if not args.quiet or st["interrupted"]:
+        state = ""
+        if st["interrupted"]:
+            state = " (interrupted: partial image)"
+        elif st["time_limited"]:
+            state = " (time limit reached)"
+        print(f"mpg-render: wrote {out}" + (f" and {preview}" if preview else "")
+              + f": {img.spp} spp, {st['seconds']:.2f} s, "
+              f"{st['samples_per_second'] / 1e6:.2f} M samples/s{state}", file=sys.stderr)
+        if st["rejected_samples"]:
+            print(f"mpg-render: rejected {st['rejected_samples']} samples with NaN/Inf/negative "
+                  f"values (NaN {st.get('rejected_nan', 0)}, Inf {st.get('rejected_inf', 0)}, "
+                  f"negative {st.get('rejected_negative', 0)})", file=sys.stderr)
+    if img.spp == 0:
+        print("mpg-render: warning: no complete pass; the image is black", file=sys.stderr)
+    return 130 if st["interrupted"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

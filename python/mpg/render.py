@@ -1,0 +1,245 @@
+"""The render loop: passes of C++ work, time budgets, progress, interruption."""
+
+from __future__ import annotations
+
+import math
+import sys
+import time as _time
+from dataclasses import dataclass, field
+from typing import Any, Optional, Union
+
+import numpy as np
+
+from mpg.errors import RenderError
+from mpg.image import Image
+from mpg.scene.desc import IntegratorDesc, SceneDesc
+
+# Integrators implemented by the core, and the papers' names that map onto
+# them until their own implementation lands (kept as hints, with a warning).
+IMPLEMENTED = {"path"}
+PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters"}
+FALLBACK_TO_PATH = {
+    "path_sms_ss", "path_sms_ms", "manifold_path_guiding", "sms", "sms_star", "mpg",
+    "volpath", "ptracer",
+}
+
+
+@dataclass
+class Scene:
+    """A loaded scene: its description and (built on first use) the C++ scene."""
+
+    desc: SceneDesc
+    _core: Any = field(default=None, repr=False)
+
+    @property
+    def core(self):
+        if self._core is None:
+            from mpg.scene.build import build_scene
+
+            self._core = build_scene(self.desc)
+        return self._core
+
+    @property
+    def warnings(self) -> list[str]:
+        return self.desc.warnings
+
+
+def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]:
+    warnings: list[str] = []
+    if integrator is None:
+        idesc = scene.desc.integrator
+        name, params = idesc.type, dict(idesc.params)
+    elif isinstance(integrator, str):
+        name, params = integrator, {}
+        if scene.desc.integrator.type == integrator:
+            params = dict(scene.desc.integrator.params)
+        elif "max_depth" in scene.desc.integrator.params:
+            params["max_depth"] = scene.desc.integrator.params["max_depth"]
+    elif isinstance(integrator, IntegratorDesc):
+        name, params = integrator.type, dict(integrator.params)
+    elif isinstance(integrator, dict):
+        params = dict(integrator)
+        name = params.pop("type", "path")
+    else:
+        raise RenderError(f"integrator must be a name or a dict, got {type(integrator).__name__}")
+    if name in FALLBACK_TO_PATH:
+        warnings.append(
+            f"integrator '{name}' is not implemented yet; rendering with 'path' "
+            f"(max_depth={params.get('max_depth', -1)})"
+        )
+        name = "path"
+    if name not in IMPLEMENTED:
+        raise RenderError(
+            f"unknown integrator '{name}' (available: {', '.join(sorted(IMPLEMENTED))})"
+        )
+    core_params = {k: v for k, v in params.items() if k in PATH_PARAMS}
+    for k in ("max_depth", "rr_depth"):
+        if k in core_params:
+            core_params[k] = int(core_params[k])
+    if "hide_emitters" in core_params:
+        core_params["hide_emitters"] = bool(core_params["hide_emitters"])
+    return name, core_params, warnings
+
+
+class Progress:
+    """A one-line progress bar with ETA on stderr (only when it is a terminal)."""
+
+    def __init__(self, enabled: Optional[bool] = None, stream=None):
+        self.stream = stream or sys.stderr
+        self.enabled = self.stream.isatty() if enabled is None else enabled
+        self._last = 0.0
+
+    def update(self, frac: float, spp_done: int, spp_total: Optional[int], elapsed: float,
+               force: bool = False) -> None:
+        if not self.enabled:
+            return
+        now = _time.monotonic()
+        if not force and now - self._last < 0.1:
+            return
+        self._last = now
+        frac = min(max(frac, 0.0), 1.0)
+        width = 30
+        n = int(round(frac * width))
+        eta = (elapsed / frac - elapsed) if frac > 1e-6 else float("nan")
+        spp = f"{spp_done}/{spp_total} spp" if spp_total else f"{spp_done} spp"
+        eta_s = f"ETA {eta:6.1f}s" if math.isfinite(eta) else "ETA    ?  "
+        self.stream.write(f"\r[{'#' * n}{'.' * (width - n)}] {100 * frac:5.1f}%  {spp}  "
+                          f"{elapsed:6.1f}s  {eta_s}")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def pass_schedule(first: int = 1, cap: int = 32):
+    """Deterministic spp per pass: 1, 1, 2, 4, ... capped (same spp -> same passes)."""
+    k = first
+    yield k
+    while True:
+        yield k
+        k = min(2 * k, cap)
+
+
+def render(
+    scene: Scene,
+    integrator: Union[None, str, dict, IntegratorDesc] = None,
+    spp: Optional[int] = None,
+    time: Optional[float] = None,
+    seed: int = 0,
+    threads: Optional[int] = None,
+    progress: Optional[bool] = None,
+) -> Image:
+    """Render `scene` and return an Image.
+
+    spp: samples per pixel (default: the scene's sampler sample_count, when no time is given).
+    time: wall-clock budget in seconds; with spp too, whichever comes first.
+    The image is bit-identical for a given (seed, spp) whatever the thread count.
+    Ctrl-C stops the render and returns what was accumulated (stats['interrupted']).
+    """
+    from mpg import _core
+
+    if spp is None and time is None:
+        spp = int(scene.desc.camera.spp)
+    if spp is not None and spp < 1:
+        raise RenderError(f"spp must be at least 1, got {spp}")
+    if time is not None and not (time > 0):
+        raise RenderError(f"time must be positive, got {time}")
+    if threads is not None and threads < 1:
+        raise RenderError(f"threads must be at least 1, got {threads}")
+    name, params, warnings = _resolve_integrator(scene, integrator)
+    try:
+        integ = _core.make_integrator(name, params)
+    except ValueError as e:
+        raise RenderError(f"integrator '{name}': {e}") from None
+    core_scene = scene.core
+    cam = scene.desc.camera
+    h, w = int(cam.crop[3]), int(cam.crop[2])
+    acc = np.zeros((h, w, 3))
+    acc2 = np.zeros((h, w, 3))
+    stats: dict[str, float] = {}
+    done = 0
+    passes = 0
+    interrupted = False
+    time_limited = False
+    bar = Progress(progress)
+    t0 = _time.monotonic()
+    sched = pass_schedule()
+    pass_seconds_per_spp = None
+    try:
+        while spp is None or done < spp:
+            k = next(sched)
+            if spp is not None:
+                k = min(k, spp - done)
+            if time is not None:
+                left = time - (_time.monotonic() - t0)
+                if left <= 0:
+                    time_limited = True
+                    break
+                if pass_seconds_per_spp and spp is None:
+                    k = max(1, min(k, int(left / pass_seconds_per_spp)))
+            job = _core.RenderJob(core_scene, integ, k, seed, passes, threads or 0)
+            cancelled_by_time = False
+            try:
+                while not job.wait(0.05):
+                    el = _time.monotonic() - t0
+                    if time is not None and el > time:
+                        job.cancel()
+                        cancelled_by_time = True
+                    if spp is not None:
+                        frac = (done + k * job.progress) / spp
+                    else:
+                        frac = el / time
+                    if time is not None and spp is not None:
+                        frac = max(frac, el / time)
+                    bar.update(frac, done, spp, el)
+            except KeyboardInterrupt:
+                job.cancel()
+                job.wait(3600.0)
+                interrupted = True
+                break
+            r = job.result()
+            if r["cancelled"]:
+                time_limited = time_limited or cancelled_by_time
+                break
+            acc += r["sum"]
+            acc2 += r["sum_sq"]
+            for key, v in r["stats"].items():
+                stats[key] = stats.get(key, 0.0) + v
+            done += k
+            passes += 1
+            pass_seconds_per_spp = r["seconds"] / k
+            el = _time.monotonic() - t0
+            bar.update(done / spp if spp else el / time, done, spp, el)
+    finally:
+        bar.close()
+    elapsed = _time.monotonic() - t0
+    if done > 0:
+        mean = acc / done
+        if done > 1:
+            var = np.maximum(acc2 / done - mean * mean, 0.0) * (done / (done - 1)) / done
+        else:
+            var = np.full_like(mean, np.inf)
+    else:
+        mean = np.zeros_like(acc)
+        var = np.full_like(acc, np.inf)
+    rejected = int(stats.get("rejected_nan", 0) + stats.get("rejected_inf", 0)
+                   + stats.get("rejected_negative", 0))
+    out_stats: dict[str, Any] = {
+        "integrator": name,
+        "integrator_params": params,
+        "spp": done,
+        "passes": passes,
+        "seconds": elapsed,
+        "seed": seed,
+        "threads": threads or 0,
+        "interrupted": interrupted,
+        "time_limited": time_limited,
+        "rejected_samples": rejected,
+        "samples_per_second": stats.get("samples", 0.0) / elapsed if elapsed > 0 else 0.0,
+        "warnings": list(scene.warnings) + warnings,
+        **{k: int(v) for k, v in stats.items()},
+    }
+    return Image(rgb=mean.astype(np.float32), variance=var.astype(np.float32), spp=done,
+                 stats=out_stats)
