@@ -165,6 +165,7 @@ def scale(v) -> np.ndarray:
 
 def rotate(axis, angle_deg: float) -> np.ndarray:
     a = np.asarray(axis, dtype=np.float64)
+    a = a / np.max(np.abs(a))          # pre-scale: no overflow for huge components
     a = a / np.linalg.norm(a)
     t = math.radians(angle_deg)
     c, s = math.cos(t), math.sin(t)
@@ -989,6 +990,8 @@ class _Loader:
             sd.kind = "sphere"
             sd.center = (m @ np.append(center, 1.0))[:3]
             sd.radius = float(radius * math.sqrt(s2))
+            if not (np.all(np.isfinite(sd.center)) and math.isfinite(sd.radius)):
+                raise node.error("sphere center or radius is not finite after to_world")
             if emitter is not None and not sd.radius > 0:
                 raise node.error("area emitter on a shape of zero area")
             return sd
@@ -1089,7 +1092,10 @@ class _Loader:
                 else:
                     n = np.where(bad[:, None], 0.0, n)
             normals = n
-        sd.positions = mesh.positions.astype(np.float32)
+        with np.errstate(over="ignore"):
+            sd.positions = mesh.positions.astype(np.float32)
+        if not np.all(np.isfinite(sd.positions)):
+            raise node.error("mesh positions overflow single precision after to_world")
         sd.indices = mesh.indices.astype(np.uint32)
         sd.normals = None if normals is None else normals.astype(np.float32)
         sd.uvs = None if mesh.uvs is None else mesh.uvs.astype(np.float32)
