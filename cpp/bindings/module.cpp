@@ -315,16 +315,24 @@ PYBIND11_MODULE(_core, m) {
         e.env.wrap = Texture::Wrap::Repeat;
         const Mat4 m = mat4(to_world);
         e.frame = Frame(glm::normalize(Vec3(m[0])), glm::normalize(Vec3(m[1])), glm::normalize(Vec3(m[2])));
-        // Importance: luminance times sin(theta) per texel.
-        std::vector<float> w(size_t(e.env.width) * e.env.height);
-        for (int y = 0; y < e.env.height; ++y) {
-          const float st = std::sin(kPi * (y + 0.5f) / e.env.height);
-          for (int x = 0; x < e.env.width; ++x) {
-            const float* p = &e.env.data[(size_t(y) * e.env.width + x) * 3];
-            w[size_t(y) * e.env.width + x] = std::max(0.f, luminance(Color(p[0], p[1], p[2]))) * st + 1e-6f * st;
+        // Importance: a piecewise-constant density on a 2W x 2H grid of the
+        // (bilinear) radiance times sin(theta); a floor keeps it positive everywhere.
+        if (e.env.width < 2 || e.env.height < 2) throw std::invalid_argument("envmap must be at least 2x2 pixels");
+        const int gw = 2 * e.env.width, gh = 2 * e.env.height;
+        std::vector<float> w(size_t(gw) * gh);
+        double total = 0.0;
+        for (int y = 0; y < gh; ++y) {
+          const float v = (y + 0.5f) / gh, st = std::sin(kPi * v);
+          for (int x = 0; x < gw; ++x) {
+            const float l = std::max(0.f, luminance(e.env_lookup(Vec2((x + 0.5f) / gw, v))));
+            w[size_t(y) * gw + x] = l * st;
+            total += l * st;
           }
         }
-        e.env_dist.build(w, e.env.width, e.env.height);
+        const float floor_w = float(total / double(w.size()) * 1e-3) + 1e-12f;
+        for (int y = 0; y < gh; ++y)
+          for (int x = 0; x < gw; ++x) w[size_t(y) * gw + x] += floor_w * std::sin(kPi * (y + 0.5f) / gh);
+        e.env_dist.build(w, gw, gh);
         return s.add_emitter(std::move(e));
       })
       .def("set_camera", [](Scene& s, py::object to_world, float fov, const std::string& fov_axis, float near_clip,

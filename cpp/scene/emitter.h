@@ -47,10 +47,28 @@ struct Emitter {
     const float st = std::sin(theta);
     return frame.to_world(Vec3(st * std::sin(phi), std::cos(theta), -st * std::cos(phi)));
   }
+  // Lat-long lookup with Mitsuba 3's envmap convention (so the same file gives
+  // the same light): texel x is centred at u = (x + 0.5) / W and wraps around;
+  // row y sits at v = y / (H - 1), so the first and last rows are the poles.
+  Color env_lookup(const Vec2& uv) const {
+    const int W = env.width, H = env.height;
+    float fx = uv.x * float(W) - 0.5f;
+    fx -= std::floor(fx / float(W)) * float(W);
+    const float fy = std::clamp(uv.y, 0.f, 1.f) * float(H - 1);
+    const int x0 = std::min(int(fx), W - 1), y0 = std::min(int(fy), std::max(H - 2, 0));
+    const float ax = fx - float(x0), ay = fy - float(y0);
+    const int x1 = (x0 + 1) % W, y1 = std::min(y0 + 1, H - 1);
+    auto t = [&](int x, int y) {
+      const float* p = &env.data[(size_t(y) * W + x) * 3];
+      return Color(p[0], p[1], p[2]);
+    };
+    return ((1 - ax) * (1 - ay)) * t(x0, y0) + (ax * (1 - ay)) * t(x1, y0) +
+           ((1 - ax) * ay) * t(x0, y1) + (ax * ay) * t(x1, y1);
+  }
   Color eval_env(const Vec3& d_world) const {
     if (type == Type::Constant) return value;
     if (type != Type::Envmap) return Color(0.f);
-    return env.eval(env_uv(d_world)) * scale;
+    return env_lookup(env_uv(d_world)) * scale;
   }
   // Solid-angle density of sampling an escaped direction (without selection probability).
   float pdf_env(const Vec3& d_world) const {

@@ -268,7 +268,7 @@ EmitterSample Scene::sample_emitter(const Vec3& ref, float u_sel, const Vec2& u)
       const float st = std::sin(uv.y * kPi);
       if (!(pdf_uv > 0.f) || !(st > 1e-7f)) return es;
       es.wi = e.env_dir(uv);
-      es.value = e.env.eval(uv) * e.scale;
+      es.value = e.env_lookup(uv) * e.scale;
       es.pdf = psel * pdf_uv / (2.f * kPi * kPi * st);
       return es;
     }
