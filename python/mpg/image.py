@@ -83,7 +83,9 @@ def read_exr(path: str) -> tuple[np.ndarray, Optional[np.ndarray]]:
     else:
         raise MPGError(f"{path}: no RGB channels (found {sorted(ch)})")
     var = None
-    if all(f"variance.{c}" in ch for c in "RGB"):
+    if "variance" in ch and np.asarray(ch["variance"]).ndim == 3:
+        var = np.asarray(ch["variance"])[:, :, :3].astype(np.float32)
+    elif all(f"variance.{c}" in ch for c in "RGB"):
         var = np.stack([ch[f"variance.{c}"] for c in "RGB"], axis=2).astype(np.float32)
     return rgb.astype(np.float32), var
 

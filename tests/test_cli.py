@@ -1,0 +1,87 @@
+"""The mpg-render command line: outputs, overrides, errors, interruption."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+import mpg
+
+CLI = [sys.executable, "-m", "mpg.cli"]
+SMALL = ["-D", "res_x=32", "-D", "res_y=24"]
+
+
+def run(args, **kw):
+    return subprocess.run(CLI + args, capture_output=True, text=True, timeout=120, **kw)
+
+
+def test_default_scene_writes_exr_png_and_stats(tmp_path):
+    out = tmp_path / "d.exr"
+    r = run(["-o", str(out), "--spp", "4", "--stats", str(tmp_path / "s.json"), *SMALL])
+    assert r.returncode == 0, r.stderr
+    rgb, var = mpg.read_exr(str(out))
+    assert rgb.shape == (24, 32, 3) and var is not None
+    assert np.isfinite(rgb).all() and rgb.mean() > 0
+    assert (tmp_path / "d.png").exists()
+    st = json.loads((tmp_path / "s.json").read_text())
+    assert st["spp"] == 4 and st["integrator"] == "path" and st["rejected_samples"] == 0
+
+
+def test_missing_scene_file_is_one_clear_line(tmp_path):
+    r = run([str(tmp_path / "nope.xml")])
+    assert r.returncode == 1
+    assert "nope.xml: no such scene file" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_malformed_xml_names_file_and_line(tmp_path):
+    bad = tmp_path / "bad.xml"
+    bad.write_text('<scene version="3.0.0">\n  <shape type="sphere">\n  </shap>\n</scene>\n')
+    r = run([str(bad), "-o", str(tmp_path / "x.exr")])
+    assert r.returncode == 1
+    assert "bad.xml:3" in r.stderr
+    assert "Traceback" not in r.stderr
+    assert not (tmp_path / "x.exr").exists()
+
+
+def test_unknown_plugin_is_an_error(tmp_path):
+    bad = tmp_path / "plug.xml"
+    bad.write_text('<scene version="3.0.0">\n<shape type="teapot"/>\n</scene>\n')
+    r = run([str(bad)])
+    assert r.returncode == 1 and "plug.xml:2" in r.stderr and "teapot" in r.stderr
+
+
+def test_bad_arguments():
+    assert run(["--spp", "0"]).returncode == 1
+    assert run(["-o", "x.png"]).returncode == 1
+    assert run(["-D", "novalue"]).returncode == 2  # argparse usage error
+
+
+def test_time_limit_writes_the_image(tmp_path):
+    out = tmp_path / "t.exr"
+    t0 = time.monotonic()
+    r = run(["-o", str(out), "--time", "1.5", *SMALL])
+    assert r.returncode == 0, r.stderr
+    assert time.monotonic() - t0 < 20
+    assert out.exists() and "time limit reached" in r.stderr
+
+
+def test_ctrl_c_writes_what_it_has(tmp_path):
+    out = tmp_path / "i.exr"
+    p = subprocess.Popen(CLI + ["-o", str(out), "--spp", "1000000", "--stats",
+                                str(tmp_path / "s.json"), "-D", "res_x=64", "-D", "res_y=48"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(4.0)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130, err
+    assert "interrupted" in err
+    rgb, _ = mpg.read_exr(str(out))
+    assert np.isfinite(rgb).all()
+    st = json.loads((tmp_path / "s.json").read_text())
+    assert st["interrupted"] is True and st["spp"] >= 1
