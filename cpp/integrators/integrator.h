@@ -10,8 +10,14 @@ namespace mpg {
 class Integrator {
  public:
   virtual ~Integrator() = default;
-  virtual Color Li(const Scene& scene, const Vec3& o, const Vec3& d, float tmin, float tmax,
-                   PCG32& rng, Stats& stats) const = 0;
+  // Radiance along a camera ray whose first hit `si` is already known.
+  virtual Color Li_hit(const Scene& scene, const Vec3& o, const Vec3& d, SurfaceInteraction si,
+                       PCG32& rng, Stats& stats) const = 0;
+  Color Li(const Scene& scene, const Vec3& o, const Vec3& d, float tmin, float tmax, PCG32& rng,
+           Stats& stats) const {
+    stats.rays++;
+    return Li_hit(scene, o, d, scene.intersect(o, d, tmin, tmax), rng, stats);
+  }
 };
 
 }  // namespace mpg

@@ -2,14 +2,12 @@
 
 namespace mpg {
 
-Color PathIntegrator::Li(const Scene& scene, const Vec3& o_in, const Vec3& d_in, float tmin,
-                         float tmax, PCG32& rng, Stats& st) const {
+Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d_in,
+                             SurfaceInteraction si, PCG32& rng, Stats& st) const {
   Color L(0.f), beta(1.f);
   if (p_.max_depth == 0) return L;
   float eta = 1.f;
   Vec3 d = d_in;
-  st.rays++;
-  SurfaceInteraction si = scene.intersect(o_in, d, tmin, tmax);
   Vec3 prev_p = o_in;
   float prev_pdf = 1.f;
   bool prev_delta = true;

@@ -20,8 +20,8 @@ struct PathParams {
 class PathIntegrator : public Integrator {
  public:
   explicit PathIntegrator(PathParams p) : p_(p) {}
-  Color Li(const Scene& scene, const Vec3& o, const Vec3& d, float tmin, float tmax, PCG32& rng,
-           Stats& stats) const override;
+  Color Li_hit(const Scene& scene, const Vec3& o, const Vec3& d, SurfaceInteraction si, PCG32& rng,
+               Stats& stats) const override;
 
  private:
   PathParams p_;

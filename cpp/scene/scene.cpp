@@ -44,7 +44,6 @@ void Scene::commit() {
   g_embree_error.clear();
   rtc_ = rtcNewScene(device_);
   rtcSetSceneBuildQuality(rtc_, RTC_BUILD_QUALITY_HIGH);
-  rtcSetSceneFlags(rtc_, RTC_SCENE_FLAG_ROBUST);
   bbox_min = Vec3(kInf);
   bbox_max = Vec3(-kInf);
   for (size_t i = 0; i < shapes.size(); ++i) {
@@ -123,16 +122,49 @@ SurfaceInteraction Scene::intersect(const Vec3& o, const Vec3& d, float tmin, fl
   rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
   rtcIntersect1(rtc_, &ctx, &rh);
   if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return si;
+  return make_interaction(o, d, rh.ray.tfar, rh.hit.geomID, rh.hit.primID, rh.hit.u, rh.hit.v);
+}
 
-  const Shape& s = shapes[rh.hit.geomID];
+void Scene::intersect16(const Vec3* o, const Vec3* d, const float* tmin, const float* tmax, int n,
+                        SurfaceInteraction* out) const {
+  alignas(64) RTCRayHit16 rh;
+  alignas(64) int valid[16];
+  RTCIntersectContext ctx;
+  rtcInitIntersectContext(&ctx);
+  ctx.flags = RTC_INTERSECT_CONTEXT_FLAG_COHERENT;
+  for (int i = 0; i < 16; ++i) {
+    const int k = i < n ? i : 0;
+    valid[i] = i < n ? -1 : 0;
+    rh.ray.org_x[i] = o[k].x; rh.ray.org_y[i] = o[k].y; rh.ray.org_z[i] = o[k].z;
+    rh.ray.dir_x[i] = d[k].x; rh.ray.dir_y[i] = d[k].y; rh.ray.dir_z[i] = d[k].z;
+    rh.ray.tnear[i] = tmin[k]; rh.ray.tfar[i] = tmax[k];
+    rh.ray.mask[i] = 0xffffffffu; rh.ray.flags[i] = 0; rh.ray.time[i] = 0.f; rh.ray.id[i] = unsigned(i);
+    rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
+  }
+  rtcIntersect16(valid, rtc_, &ctx, &rh);
+  for (int i = 0; i < n; ++i) {
+    if (rh.hit.geomID[i] == RTC_INVALID_GEOMETRY_ID) {
+      out[i] = SurfaceInteraction();
+    } else {
+      out[i] = make_interaction(o[i], d[i], rh.ray.tfar[i], rh.hit.geomID[i], rh.hit.primID[i],
+                                rh.hit.u[i], rh.hit.v[i]);
+    }
+  }
+}
+
+SurfaceInteraction Scene::make_interaction(const Vec3& o, const Vec3& d, float t, unsigned geom,
+                                           unsigned prim, float bu, float bv) const {
+  SurfaceInteraction si;
+  const Shape& s = shapes[geom];
   si.valid = true;
-  si.t = rh.ray.tfar;
-  si.shape = int(rh.hit.geomID);
-  si.prim = int(rh.hit.primID);
+  si.t = t;
+  si.shape = int(geom);
+  si.prim = int(prim);
   si.wi = -d;
   Vec3 ns;
   if (s.kind == Shape::Kind::Sphere) {
-    const Vec3 p = o + d * si.t;
+    const Vec3 p = o + d * t;
     const Vec3 q = glm::normalize(p - s.center);
     si.p = s.center + q * s.radius;  // reproject onto the exact sphere
     si.ng = q;
@@ -148,14 +180,14 @@ SurfaceInteraction Scene::intersect(const Vec3& o, const Vec3& d, float tmin, fl
     const float cp = std::cos(phi), sp = std::sin(phi);
     si.dpdv = Vec3(q.z * cp, q.z * sp, -sin_t) * (kPi * s.radius);
   } else {
-    const glm::uvec3 t = s.indices[rh.hit.primID];
-    const float b1 = rh.hit.u, b2 = rh.hit.v, b0 = 1.f - b1 - b2;
-    const Vec3 p0 = s.positions[t.x], p1 = s.positions[t.y], p2 = s.positions[t.z];
+    const glm::uvec3 tri = s.indices[prim];
+    const float b1 = bu, b2 = bv, b0 = 1.f - b1 - b2;
+    const Vec3 p0 = s.positions[tri.x], p1 = s.positions[tri.y], p2 = s.positions[tri.z];
     si.p = p0 * b0 + p1 * b1 + p2 * b2;
     const Vec3 e1 = p1 - p0, e2 = p2 - p0;
     si.ng = glm::normalize(glm::cross(e1, e2));
     if (!s.normals.empty()) {
-      ns = s.normals[t.x] * b0 + s.normals[t.y] * b1 + s.normals[t.z] * b2;
+      ns = s.normals[tri.x] * b0 + s.normals[tri.y] * b1 + s.normals[tri.z] * b2;
       const float l = glm::length(ns);
       ns = l > 0.f ? ns / l : si.ng;
     } else {
@@ -163,7 +195,7 @@ SurfaceInteraction Scene::intersect(const Vec3& o, const Vec3& d, float tmin, fl
     }
     bool have_dp = false;
     if (!s.uvs.empty()) {
-      const Vec2 uv0 = s.uvs[t.x], uv1 = s.uvs[t.y], uv2 = s.uvs[t.z];
+      const Vec2 uv0 = s.uvs[tri.x], uv1 = s.uvs[tri.y], uv2 = s.uvs[tri.z];
       si.uv = uv0 * b0 + uv1 * b1 + uv2 * b2;
       const Vec2 d1 = uv1 - uv0, d2 = uv2 - uv0;
       const float det = d1.x * d2.y - d1.y * d2.x;

@@ -43,6 +43,12 @@ class Scene {
   bool committed() const { return committed_; }
 
   SurfaceInteraction intersect(const Vec3& o, const Vec3& d, float tmin, float tmax) const;
+  // Up to 16 rays at once (coherent camera rays): Embree's packet traversal.
+  void intersect16(const Vec3* o, const Vec3* d, const float* tmin, const float* tmax, int n,
+                   SurfaceInteraction* out) const;
+  // Complete a hit record from Embree's (geometry, primitive, barycentrics, t).
+  SurfaceInteraction make_interaction(const Vec3& o, const Vec3& d, float t, unsigned geom,
+                                      unsigned prim, float bu, float bv) const;
   bool occluded(const Vec3& o, const Vec3& d, float tmin, float tmax) const;
   // Shadow ray between two surface points (offsets applied at both ends).
   bool visible(const Vec3& p, const Vec3& ng_p, const Vec3& q, const Vec3& ng_q) const;

@@ -7,6 +7,12 @@
 
 from __future__ import annotations
 
+import os as _os
+
+# numpy's OpenBLAS threads spin-wait after each call and steal cores from the
+# render threads; mpg does no large linear algebra, so one BLAS thread is enough.
+_os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 from mpg.errors import MPGError, RenderError, SceneError
 from mpg.image import Image, read_exr, write_exr, write_png
 from mpg.render import Scene, render
