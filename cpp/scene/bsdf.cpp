@@ -273,10 +273,29 @@ BSDFSample BSDFSet::sample_local(const BSDF& b, const Vec2& uv, const Vec3& wi, 
     }
     case BSDFType::RoughDielectric: {
       if (ci == 0.f) return s;
+      if (b.eta == 1.f) {
+        // Index-matched: F = 0 and every microfacet refracts wi to -wi, so the
+        // BTDF is a delta (eval/pdf are 0: the generalised half vector of
+        // Walter 2007 Eq. 16 degenerates). As pbrt-v4's DielectricBxDF
+        // (eta == 1 -> specular), pass straight through instead of rejecting
+        // every sample, which made the interface absorb all light.
+        s.wo = -wi;
+        s.pdf = 1.f;
+        s.delta = s.transmission = true;
+        s.weight = tex(b.specular_transmittance, uv);
+        return s;
+      }
       float pm;
       const Vec3 m = b.mf.sample(wi * sign_of(ci), u2, pm);
       if (!(pm > 0.f)) return s;
       const float wim = glm::dot(wi, m);
+      // A normal facing away from wi (possible when sampling D(m) cos(theta_m)
+      // rather than visible normals) has G1(wi, m) = 0: Walter 2007 Eq. 7's
+      // chi+(v.m / v.n). Refracting through it used the wrong Fresnel side and
+      // landed on a wo whose generalised half vector is another, front-facing
+      // m', weighted eval/pdf as if drawn through m': extra energy. pdf_local
+      // gives such m no density, so the sample is rejected (weight 0).
+      if (wim * ci <= 0.f) return s;
       const DielectricFresnel f = fresnel_dielectric(wim, b.eta);
       if (u1 <= f.F) {
         s.wo = reflect(wi, m);
