@@ -21,13 +21,16 @@ inline DielectricFresnel fresnel_dielectric(float cos_i, float eta) {
   const float eta_it = outside ? eta : 1.f / eta;
   const float eta_ti = 1.f / eta_it;
   const float ci = std::min(std::abs(cos_i), 1.f);
+  // Index-matched: no reflection at any angle, wo = -wi. Tested before the TIR
+  // branch, where 1 - ci^2 rounds to 1 for ci < 2.4e-4 and gave F = 1 at
+  // grazing incidence (as Mitsuba 3's fresnel(): r = 0, cos_t = -cos_i).
+  if (eta == 1.f) return {0.f, outside ? -ci : ci, 1.f, 1.f};
   const float sin2_t = eta_ti * eta_ti * (1.f - ci * ci);
   if (sin2_t >= 1.f) return {1.f, 0.f, eta_it, eta_ti};  // total internal reflection
   const float ct = safe_sqrt(1.f - sin2_t);
   const float rs = (ci - eta_it * ct) / (ci + eta_it * ct);
   const float rp = (eta_it * ci - ct) / (eta_it * ci + ct);
   float F = 0.5f * (rs * rs + rp * rp);
-  if (eta == 1.f) F = 0.f;
   return {F, outside ? -ct : ct, eta_it, eta_ti};
 }
 
