@@ -49,24 +49,47 @@ def histogram_sphere(v: np.ndarray, n_cos: int, n_phi: int,
     return counts.astype(np.float64), int((~inside).sum())
 
 
+def _row_nodes(a: float, b: float, sub: int, toward: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """Midpoints and widths of sub intervals of [a, b]; geometrically graded
+    toward the end `toward` (a pole) if given."""
+    e = np.linspace(a, b, sub + 1)
+    if toward is not None:
+        # plus geometrically graded edges inside the sub-interval at the pole,
+        # down to 1e-6 of the row: a feature at 1 - |cos| ~ 1e-6 .. 1e-3
+        # (a fraction of a degree to a few degrees from the pole) is resolved.
+        g = np.geomspace(1e-6, 1.0 / sub, sub) * (b - a)
+        e = np.unique(np.concatenate([e, a + g if toward == a else b - g]))
+    return 0.5 * (e[1:] + e[:-1]), np.diff(e)
+
+
 def integrate_sphere_grid(pdf_fn, n_cos: int, n_phi: int, sub: int = 16,
                           z_range: tuple[float, float] = (-1.0, 1.0),
                           chunk: int = 1 << 20) -> np.ndarray:
     """Integral of pdf_fn (solid-angle density of (M,3) float32 directions) over
-    every cell of the grid, by the midpoint rule on sub x sub nodes per cell.
-    dOmega = d(cos theta) d(phi), so every node has the same weight."""
+    every cell of the grid, dOmega = d(cos theta) d(phi), by the midpoint rule
+    on sub x sub nodes per cell. The rows touching a pole get sub more nodes in
+    cos theta, graded geometrically toward the pole: near a pole the cells are thin wedges
+    and a uniform cos grid cannot see a support edge a degree from the pole."""
     z0, z1 = z_range
-    nz, nphi = n_cos * sub, n_phi * sub
-    dz, dphi = (z1 - z0) / nz, 2.0 * np.pi / nphi
-    zc = z0 + (np.arange(nz) + 0.5) * dz
+    zb = np.linspace(z0, z1, n_cos + 1)
+    zc, zw, zrow = [], [], []
+    for i in range(n_cos):
+        pole = -1.0 if (i == 0 and z0 == -1.0) else (1.0 if (i == n_cos - 1 and z1 == 1.0) else None)
+        c, w = _row_nodes(zb[i], zb[i + 1], sub, pole)
+        zc.append(c), zw.append(w), zrow.append(np.full(len(c), i))
+    zc, zw, zrow = map(np.concatenate, (zc, zw, zrow))
+    nphi = n_phi * sub
+    dphi = 2.0 * np.pi / nphi
     pc = (np.arange(nphi) + 0.5) * dphi
     Z, P = np.meshgrid(zc, pc, indexing="ij")
     R = np.sqrt(np.maximum(0.0, 1.0 - Z * Z))
     dirs = np.stack([R * np.cos(P), R * np.sin(P), Z], axis=-1).reshape(-1, 3).astype(np.float32)
     vals = np.concatenate([np.asarray(pdf_fn(dirs[i:i + chunk]), dtype=np.float64)
                            for i in range(0, len(dirs), chunk)])
-    vals = vals.reshape(nz, nphi) * (dz * dphi)
-    return vals.reshape(n_cos, sub, n_phi, sub).sum(axis=(1, 3))
+    vals = vals.reshape(len(zc), n_phi, sub).sum(axis=2) * dphi * zw[:, None]
+    out = np.zeros((n_cos, n_phi))
+    np.add.at(out, zrow, vals)
+    return out
 
 
 def chi2_test(observed: np.ndarray, expected: np.ndarray, n_total: int,
