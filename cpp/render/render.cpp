@@ -57,71 +57,44 @@ void RenderJob::run() {
     _MM_SET_FLUSH_ZERO_MODE(_MM_FLUSH_ZERO_ON);
     _MM_SET_DENORMALS_ZERO_MODE(_MM_DENORMALS_ZERO_ON);
     Stats& st = stats[size_t(tid)];
-    std::vector<double> tile_sum, tile_sq;
     for (;;) {
       if (cancel_.load(std::memory_order_relaxed)) return;
       const int tile = next_tile.fetch_add(1);
       if (tile >= tiles_total_) return;
       const int x0 = (tile % tx) * T, y0 = (tile / tx) * T;
       const int x1 = std::min(x0 + T, W), y1 = std::min(y0 + T, H);
-      // Camera rays are traced as 4x4 packets (coherent: Embree's packet
-      // traversal is much faster for them); each lane then continues alone.
-      const int tw = x1 - x0, th = y1 - y0;
-      std::vector<double>& s = tile_sum;
-      std::vector<double>& s2 = tile_sq;
-      s.assign(size_t(tw) * th * 3, 0.0);
-      s2.assign(size_t(tw) * th * 3, 0.0);
-      for (int k = 0; k < cfg_.spp; ++k) {
-        for (int by = y0; by < y1; by += 4) {
-          for (int bx = x0; bx < x1; bx += 4) {
-            PCG32 rng[16];
-            Vec3 o[16], d[16];
-            float tmin[16], tmax[16];
-            int px[16], py[16];
-            int n = 0;
-            for (int y = by; y < std::min(by + 4, y1); ++y) {
-              for (int x = bx; x < std::min(bx + 4, x1); ++x) {
-                const int fx = cam.crop_x + x, fy = cam.crop_y + y;
-                const uint64_t pixel = uint64_t(fy) * uint64_t(cam.width) + uint64_t(fx);
-                rng[n] = make_stream(cfg_.seed, cfg_.pass, pixel, uint64_t(k));
-                const float ox = cam.filter.sample(rng[n].next_float());
-                const float oy = cam.filter.sample(rng[n].next_float());
-                cam.generate_ray(Vec2(float(fx) + 0.5f + ox, float(fy) + 0.5f + oy), o[n], d[n], tmin[n], tmax[n]);
-                px[n] = x - x0;
-                py[n] = y - y0;
-                ++n;
-              }
+      for (int y = y0; y < y1; ++y) {
+        for (int x = x0; x < x1; ++x) {
+          const int fx = cam.crop_x + x, fy = cam.crop_y + y;
+          const uint64_t pixel = uint64_t(fy) * uint64_t(cam.width) + uint64_t(fx);
+          double s[3] = {0, 0, 0}, s2[3] = {0, 0, 0};
+          for (int k = 0; k < cfg_.spp; ++k) {
+            PCG32 rng = make_stream(cfg_.seed, cfg_.pass, pixel, uint64_t(k));
+            const float ox = cam.filter.sample(rng.next_float());
+            const float oy = cam.filter.sample(rng.next_float());
+            Vec3 o, d;
+            float tmin, tmax;
+            cam.generate_ray(Vec2(float(fx) + 0.5f + ox, float(fy) + 0.5f + oy), o, d, tmin, tmax);
+            st.camera_rays++;
+            Color L = integrator_->Li(scene, o, d, tmin, tmax, rng, st);
+            st.samples++;
+            if (!(std::isfinite(L.x) && std::isfinite(L.y) && std::isfinite(L.z))) {
+              if (std::isnan(L.x) || std::isnan(L.y) || std::isnan(L.z)) st.rejected_nan++;
+              else st.rejected_inf++;
+              L = Color(0.f);
+            } else if (L.x < 0.f || L.y < 0.f || L.z < 0.f) {
+              st.rejected_negative++;
+              L = Color(0.f);
             }
-            SurfaceInteraction hits[16];
-            scene.intersect16(o, d, tmin, tmax, n, hits);
-            st.rays += uint64_t(n);
-            st.camera_rays += uint64_t(n);
-            for (int i = 0; i < n; ++i) {
-              Color L = integrator_->Li_hit(scene, o[i], d[i], hits[i], rng[i], st);
-              st.samples++;
-              if (!(std::isfinite(L.x) && std::isfinite(L.y) && std::isfinite(L.z))) {
-                if (std::isnan(L.x) || std::isnan(L.y) || std::isnan(L.z)) st.rejected_nan++;
-                else st.rejected_inf++;
-                L = Color(0.f);
-              } else if (L.x < 0.f || L.y < 0.f || L.z < 0.f) {
-                st.rejected_negative++;
-                L = Color(0.f);
-              }
-              const size_t j = (size_t(py[i]) * tw + px[i]) * 3;
-              for (int c = 0; c < 3; ++c) {
-                s[j + c] += L[c];
-                s2[j + c] += double(L[c]) * L[c];
-              }
+            for (int c = 0; c < 3; ++c) {
+              s[c] += L[c];
+              s2[c] += double(L[c]) * L[c];
             }
           }
-        }
-      }
-      for (int y = 0; y < th; ++y) {
-        for (int x = 0; x < tw; ++x) {
-          const size_t i = (size_t(y0 + y) * W + (x0 + x)) * 3, j = (size_t(y) * tw + x) * 3;
+          const size_t i = (size_t(y) * W + x) * 3;
           for (int c = 0; c < 3; ++c) {
-            result_.sum[i + c] = s[j + c];
-            result_.sum_sq[i + c] = s2[j + c];
+            result_.sum[i + c] = s[c];
+            result_.sum_sq[i + c] = s2[c];
           }
         }
       }

@@ -21,6 +21,16 @@ namespace {
 inline float sign_of(float x) { return x < 0.f ? -1.f : 1.f; }
 }  // namespace
 
+bool BSDFSet::uses_uv(int id) const {
+  if (id < 0 || id >= int(nodes.size())) return false;
+  const BSDF& b = nodes[size_t(id)];
+  for (int t : {b.reflectance, b.specular_reflectance, b.specular_transmittance, b.normalmap})
+    if (t >= 0 && textures[size_t(t)].kind != Texture::Kind::Constant) return true;
+  for (int c : {b.front, b.back, b.nested})
+    if (c >= 0 && c != id && uses_uv(c)) return true;
+  return false;
+}
+
 BSDFContext BSDFSet::resolve(int id, const SurfaceInteraction& si) const {
   BSDFContext c;
   c.frame = si.sh;

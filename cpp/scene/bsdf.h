@@ -66,6 +66,8 @@ class BSDFSet {
   std::vector<Texture> textures;
 
   BSDFContext resolve(int id, const SurfaceInteraction& si) const;
+  // Whether evaluating BSDF `id` reads texture coordinates (bitmap/checkerboard textures).
+  bool uses_uv(int id) const;
 
   // Local-frame operations on a resolved context; wi and wo in world space.
   Color eval(const BSDFContext& c, const Vec3& wi, const Vec3& wo) const;

@@ -47,6 +47,7 @@ void Scene::commit() {
   bbox_min = Vec3(kInf);
   bbox_max = Vec3(-kInf);
   for (size_t i = 0; i < shapes.size(); ++i) {
+    shapes[i].needs_uv = bsdfs.uses_uv(shapes[i].bsdf);
     const Shape& s = shapes[i];
     RTCGeometry g;
     if (s.kind == Shape::Kind::Sphere) {
@@ -125,34 +126,6 @@ SurfaceInteraction Scene::intersect(const Vec3& o, const Vec3& d, float tmin, fl
   return make_interaction(o, d, rh.ray.tfar, rh.hit.geomID, rh.hit.primID, rh.hit.u, rh.hit.v);
 }
 
-void Scene::intersect16(const Vec3* o, const Vec3* d, const float* tmin, const float* tmax, int n,
-                        SurfaceInteraction* out) const {
-  alignas(64) RTCRayHit16 rh;
-  alignas(64) int valid[16];
-  RTCIntersectContext ctx;
-  rtcInitIntersectContext(&ctx);
-  ctx.flags = RTC_INTERSECT_CONTEXT_FLAG_COHERENT;
-  for (int i = 0; i < 16; ++i) {
-    const int k = i < n ? i : 0;
-    valid[i] = i < n ? -1 : 0;
-    rh.ray.org_x[i] = o[k].x; rh.ray.org_y[i] = o[k].y; rh.ray.org_z[i] = o[k].z;
-    rh.ray.dir_x[i] = d[k].x; rh.ray.dir_y[i] = d[k].y; rh.ray.dir_z[i] = d[k].z;
-    rh.ray.tnear[i] = tmin[k]; rh.ray.tfar[i] = tmax[k];
-    rh.ray.mask[i] = 0xffffffffu; rh.ray.flags[i] = 0; rh.ray.time[i] = 0.f; rh.ray.id[i] = unsigned(i);
-    rh.hit.geomID[i] = RTC_INVALID_GEOMETRY_ID;
-    rh.hit.instID[0][i] = RTC_INVALID_GEOMETRY_ID;
-  }
-  rtcIntersect16(valid, rtc_, &ctx, &rh);
-  for (int i = 0; i < n; ++i) {
-    if (rh.hit.geomID[i] == RTC_INVALID_GEOMETRY_ID) {
-      out[i] = SurfaceInteraction();
-    } else {
-      out[i] = make_interaction(o[i], d[i], rh.ray.tfar[i], rh.hit.geomID[i], rh.hit.primID[i],
-                                rh.hit.u[i], rh.hit.v[i]);
-    }
-  }
-}
-
 SurfaceInteraction Scene::make_interaction(const Vec3& o, const Vec3& d, float t, unsigned geom,
                                            unsigned prim, float bu, float bv) const {
   SurfaceInteraction si;
@@ -169,16 +142,17 @@ SurfaceInteraction Scene::make_interaction(const Vec3& o, const Vec3& d, float t
     si.p = s.center + q * s.radius;  // reproject onto the exact sphere
     si.ng = q;
     ns = q;
-    // Mitsuba 3's sphere parameterisation: u = phi / 2pi, v = theta / pi.
-    float phi = std::atan2(q.y, q.x);
-    if (phi < 0.f) phi += 2.f * kPi;
-    const float theta = safe_acos(q.z);
-    si.uv = Vec2(phi * kInv2Pi, theta * kInvPi);
-    const float sin_t = std::sin(theta);
+    // Mitsuba 3's sphere parameterisation: u = phi / 2pi, v = theta / pi
+    // (the trigonometry only when a texture reads it).
     si.dpdu = Vec3(-q.y, q.x, 0.f) * (2.f * kPi * s.radius);
     if (!(glm::dot(si.dpdu, si.dpdu) > 1e-20f)) si.dpdu = Vec3(1.f, 0.f, 0.f);
-    const float cp = std::cos(phi), sp = std::sin(phi);
-    si.dpdv = Vec3(q.z * cp, q.z * sp, -sin_t) * (kPi * s.radius);
+    if (s.needs_uv) {
+      float phi = std::atan2(q.y, q.x);
+      if (phi < 0.f) phi += 2.f * kPi;
+      const float theta = safe_acos(q.z);
+      si.uv = Vec2(phi * kInv2Pi, theta * kInvPi);
+      si.dpdv = Vec3(q.z * std::cos(phi), q.z * std::sin(phi), -std::sin(theta)) * (kPi * s.radius);
+    }
   } else {
     const glm::uvec3 tri = s.indices[prim];
     const float b1 = bu, b2 = bv, b0 = 1.f - b1 - b2;

@@ -43,9 +43,6 @@ class Scene {
   bool committed() const { return committed_; }
 
   SurfaceInteraction intersect(const Vec3& o, const Vec3& d, float tmin, float tmax) const;
-  // Up to 16 rays at once (coherent camera rays): Embree's packet traversal.
-  void intersect16(const Vec3* o, const Vec3* d, const float* tmin, const float* tmax, int n,
-                   SurfaceInteraction* out) const;
   // Complete a hit record from Embree's (geometry, primitive, barycentrics, t).
   SurfaceInteraction make_interaction(const Vec3& o, const Vec3& d, float t, unsigned geom,
                                       unsigned prim, float bu, float bv) const;

@@ -19,6 +19,7 @@ struct Shape {
   int bsdf = -1;
   int emitter = -1;
   bool flip_normals = false;
+  bool needs_uv = true;           // false when the BSDF uses no spatially varying texture
   float area = 0.f;
   DiscreteDistribution tri_dist;  // by triangle area
 
