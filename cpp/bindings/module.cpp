@@ -9,6 +9,7 @@
 
 #include "core/warp.h"
 #include "integrators/path.h"
+#include "manifold/walk.h"
 #include "render/render.h"
 #include "scene/fresnel.h"
 #include "scene/scene.h"
@@ -202,6 +203,106 @@ BSDFContext test_context(const Scene& s, int id, const Vec3& wi) {
   si.uv = Vec2(0.5f);
   si.wi = wi;
   return s.bsdfs.resolve(id, si);
+}
+
+
+// --- manifold walk entry points (tests) -----------------------------------------
+
+WalkConfig walk_config(const py::dict& p) {
+  WalkConfig c;
+  c.threshold = get<double>(p, "threshold", c.threshold);
+  c.max_iterations = get<int>(p, "max_iterations", c.max_iterations);
+  const std::string form = get<std::string>(p, "form", "direction");
+  if (form == "direction") c.form = ConstraintForm::Direction;
+  else if (form == "angle") c.form = ConstraintForm::Angle;
+  else if (form == "half_vector") c.form = ConstraintForm::HalfVector;
+  else throw std::invalid_argument("unknown constraint form '" + form + "'");
+  return c;
+}
+
+DVec3 dvec3(const py::handle& h) {
+  auto a = py::cast<std::vector<double>>(h);
+  if (a.size() != 3) throw std::invalid_argument("expected 3 components");
+  return DVec3(a[0], a[1], a[2]);
+}
+
+py::list chain_points(const ManifoldChain& c) {
+  py::list l;
+  for (const auto& v : c.v) l.append(std::vector<double>{v.p.x, v.p.y, v.p.z});
+  return l;
+}
+
+// Trace a seed chain from x_D along `direction` with letters `tau`, optionally
+// perturb it, and run the walk toward x_L.
+py::dict manifold_walk(const Scene& s, py::object xD, py::object nD, py::object xL, py::object nL,
+                       py::object direction, const std::string& tau, const py::dict& cfg) {
+  if (!s.committed()) throw std::runtime_error("scene not committed");
+  ManifoldWalk walk(s, walk_config(cfg));
+  ManifoldChain chain;
+  WalkFailure why = WalkFailure::None;
+  py::dict r;
+  chain.xL = dvec3(xL);
+  chain.nL = glm::normalize(dvec3(nL));
+  if (!walk.trace_seed(dvec3(xD), glm::normalize(dvec3(nD)), dvec3(direction), tau, chain, why)) {
+    r["converged"] = false;
+    r["failure"] = std::string(walk_failure_name(why));
+    r["stage"] = std::string("seed");
+    return r;
+  }
+  r["seed"] = chain_points(chain);
+  const WalkResult res = walk.solve(chain);
+  r["converged"] = res.converged;
+  r["failure"] = std::string(walk_failure_name(res.failure));
+  r["iterations"] = res.iterations;
+  r["residuals"] = res.residuals;
+  r["vertices"] = chain_points(chain);
+  if (res.converged) {
+    double g = 0.0;
+    if (walk.geometry_area(chain, g)) r["G_area"] = g;
+    if (walk.geometry_point(chain, g)) r["G_point"] = g;
+  }
+  // Analytic Jacobian blocks and central finite differences of the constraints
+  // (each vertex chart perturbed by +-h), for the derivative test.
+  std::vector<double> A, B, D;
+  double dL[4], dD[4];
+  if (walk.jacobian(chain, A, B, D, dL, dD)) {
+    const size_t n = chain.v.size();
+    const double h = get<double>(cfg, "fd_step", 1e-6);
+    std::vector<double> J(4 * n * n, 0.0), Jfd(4 * n * n, 0.0);
+    for (size_t i = 0; i < n; ++i) {
+      for (int r2 = 0; r2 < 2; ++r2)
+        for (int k = 0; k < 2; ++k) {
+          if (i > 0) J[(2 * i + r2) * 2 * n + 2 * (i - 1) + k] = A[4 * i + 2 * r2 + k];
+          J[(2 * i + r2) * 2 * n + 2 * i + k] = B[4 * i + 2 * r2 + k];
+          if (i + 1 < n) J[(2 * i + r2) * 2 * n + 2 * (i + 1) + k] = D[4 * i + 2 * r2 + k];
+        }
+    }
+    for (size_t j = 0; j < n; ++j) {
+      for (int k = 0; k < 2; ++k) {
+        std::vector<double> Cp, Cm;
+        ManifoldChain cp = chain, cm = chain;
+        for (int sgn = -1; sgn <= 1; sgn += 2) {
+          ManifoldChain& c = sgn > 0 ? cp : cm;
+          ManifoldVertex& v = c.v[j];
+          const double du = k == 0 ? sgn * h : 0.0, dv = k == 1 ? sgn * h : 0.0;
+          if (v.sphere) {
+            const DVec3 q = glm::normalize(v.p - v.center + v.e1 * du + v.e2 * dv);
+            v.p = v.center + q * v.radius;
+            v.n = q * v.normal_sign;
+          } else {
+            v.p = v.p + v.e1 * du + v.e2 * dv;
+            v.n = glm::normalize(v.nb + v.dn1 * du + v.dn2 * dv) * v.normal_sign;
+          }
+        }
+        // keep the frame reference tangent fixed: it is a constant of the constraint
+        if (!walk.constraints(cp, Cp) || !walk.constraints(cm, Cm)) continue;
+        for (size_t row = 0; row < 2 * n; ++row) Jfd[row * 2 * n + 2 * j + k] = (Cp[row] - Cm[row]) / (2 * h);
+      }
+    }
+    r["jacobian"] = J;
+    r["jacobian_fd"] = Jfd;
+  }
+  return r;
 }
 
 }  // namespace
@@ -460,4 +561,6 @@ PYBIND11_MODULE(_core, m) {
   });
   m.def("fresnel_conductor", [](float cos_i, float eta, float k) { return fresnel_conductor_1(cos_i, eta, k); });
   m.def("fresnel_diffuse_reflectance", &fresnel_diffuse_reflectance);
+  m.def("manifold_walk", &manifold_walk, py::arg("scene"), py::arg("xD"), py::arg("nD"), py::arg("xL"),
+        py::arg("nL"), py::arg("direction"), py::arg("tau"), py::arg("config") = py::dict());
 }

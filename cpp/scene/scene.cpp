@@ -156,6 +156,7 @@ SurfaceInteraction Scene::make_interaction(const Vec3& o, const Vec3& d, float t
   } else {
     const glm::uvec3 tri = s.indices[prim];
     const float b1 = bu, b2 = bv, b0 = 1.f - b1 - b2;
+    si.bary = Vec2(b1, b2);
     const Vec3 p0 = s.positions[tri.x], p1 = s.positions[tri.y], p2 = s.positions[tri.z];
     si.p = p0 * b0 + p1 * b1 + p2 * b2;
     const Vec3 e1 = p1 - p0, e2 = p2 - p0;
