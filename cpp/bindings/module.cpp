@@ -9,6 +9,7 @@
 
 #include "core/warp.h"
 #include "integrators/path.h"
+#include "manifold/chain_estimator.h"
 #include "manifold/walk.h"
 #include "render/render.h"
 #include "scene/fresnel.h"
@@ -143,15 +144,33 @@ py::dict pass_to_dict(PassResult& r) {
   return out;
 }
 
-std::shared_ptr<Integrator> make_integrator(const std::string& type, const py::dict& p) {
-  if (type == "path") {
-    PathParams pp;
-    pp.max_depth = get<int>(p, "max_depth", -1);
-    pp.rr_depth = get<int>(p, "rr_depth", 5);
-    pp.hide_emitters = get<bool>(p, "hide_emitters", false);
-    if (pp.max_depth < -1) throw std::invalid_argument("max_depth must be -1 or >= 0");
-    if (pp.rr_depth < 0) throw std::invalid_argument("rr_depth must be >= 0");
-    return std::make_shared<PathIntegrator>(pp);
+WalkConfig walk_config(const py::dict& p);
+
+std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, const std::string& type,
+                                            const py::dict& p) {
+  PathParams pp;
+  pp.max_depth = get<int>(p, "max_depth", -1);
+  pp.rr_depth = get<int>(p, "rr_depth", 5);
+  pp.hide_emitters = get<bool>(p, "hide_emitters", false);
+  if (pp.max_depth < -1) throw std::invalid_argument("max_depth must be -1 or >= 0");
+  if (pp.rr_depth < 0) throw std::invalid_argument("rr_depth must be >= 0");
+  if (type == "path") return std::make_shared<PathIntegrator>(pp);
+  if (type == "sms" || type == "sms_star") {
+    if (!scene || !scene->committed()) throw std::runtime_error("scene not committed");
+    ChainParams cp;
+    cp.mode = type == "sms" ? ChainParams::Mode::Sms : ChainParams::Mode::SmsStar;
+    cp.tau = get<std::string>(p, "tau", "TT");
+    for (char c : cp.tau)
+      if (c != 'R' && c != 'T') throw std::invalid_argument("tau must be a string of R and T");
+    cp.max_chain = get<int>(p, "max_chain", cp.max_chain);
+    cp.continuation = get<float>(p, "continuation", cp.continuation);
+    cp.uniqueness_threshold = get<double>(p, "uniqueness_threshold", cp.uniqueness_threshold);
+    cp.max_trials = get<int>(p, "max_trials", cp.max_trials);
+    cp.walk = walk_config(p);
+    if (cp.max_chain < 1) throw std::invalid_argument("max_chain must be >= 1");
+    if (!(cp.continuation >= 0.f && cp.continuation < 1.f)) throw std::invalid_argument("continuation must be in [0, 1)");
+    if (cp.max_trials < 1) throw std::invalid_argument("max_trials must be >= 1");
+    return std::make_shared<PathIntegrator>(pp, std::make_shared<ChainEstimator>(*scene, cp));
   }
   throw std::invalid_argument("unknown integrator '" + type + "'");
 }
@@ -495,7 +514,7 @@ PYBIND11_MODULE(_core, m) {
       });
 
   py::class_<Integrator, std::shared_ptr<Integrator>>(m, "Integrator");
-  m.def("make_integrator", &make_integrator, py::arg("type"), py::arg("params"));
+  m.def("make_integrator", &make_integrator, py::arg("scene"), py::arg("type"), py::arg("params"));
 
   py::class_<RenderJob, std::shared_ptr<RenderJob>>(m, "RenderJob")
       .def(py::init([](std::shared_ptr<Scene> scene, std::shared_ptr<Integrator> integ, int spp, uint64_t seed,

@@ -12,6 +12,10 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
   float prev_pdf = 1.f;
   bool prev_delta = true;
   const uint32_t max_depth = uint32_t(p_.max_depth);  // -1 -> unbounded, as Mitsuba 3
+  // Specular chain since the last separator (for ownership by the chain estimator).
+  uint32_t sep_depth = 0;
+  std::string tau;
+  bool chain_ok = false;
 
   for (uint32_t depth = 0;; ) {
     const bool show = !(p_.hide_emitters && depth == 0);
@@ -32,7 +36,9 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     const Shape& shape = scene.shapes[size_t(si.shape)];
     if (shape.emitter >= 0 && show) {
       const Color Le = scene.emitted(si);
-      if (!is_black(Le)) {
+      if (chains_ && chain_ok && !tau.empty() && chains_->owns(sep_depth, max_depth, tau)) {
+        if (!is_black(Le)) st.owned_dropped++;
+      } else if (!is_black(Le)) {
         const float w = prev_delta ? 1.f : power_heuristic(prev_pdf, scene.pdf_emitter_hit(prev_p, si));
         L += beta * Le * w;
       }
@@ -64,6 +70,9 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
       }
     }
 
+    // Light through specular chains, estimated at the separator.
+    if (chains_ && !ctx.leaf->is_delta()) L += beta * chains_->estimate(si, ctx, depth, max_depth, rng, st);
+
     // BSDF sampling.
     const float u1 = rng.next_float();
     const Vec2 u2(rng.next_float(), rng.next_float());
@@ -72,6 +81,18 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     if (!(bs.pdf > 0.f) || is_black(bs.weight)) break;
     beta *= bs.weight;
     eta *= bs.eta;
+    if (chains_) {
+      if (!ctx.leaf->is_delta()) {
+        sep_depth = depth;
+        tau.clear();
+        chain_ok = true;
+      } else if (chain_ok) {
+        if (chains_->is_chain_shape(si.shape) && !bs.null && !ctx.perturbed)
+          tau.push_back(bs.transmission ? 'T' : 'R');
+        else
+          chain_ok = false;
+      }
+    }
     prev_p = si.p;
     prev_pdf = bs.pdf;
     prev_delta = bs.delta;

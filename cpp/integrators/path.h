@@ -6,7 +6,10 @@
 // probability min(max(beta) * eta^2, 0.95).
 #pragma once
 
+#include <memory>
+
 #include "integrators/integrator.h"
+#include "manifold/chain_estimator.h"
 
 namespace mpg {
 
@@ -17,14 +20,21 @@ struct PathParams {
   int hard_depth_cap = 1024;  // safety net against unbounded loops (counted)
 };
 
+// With a ChainEstimator (integrators `sms` and `sms_star`) every separator also
+// estimates the light through specular chains, and the BSDF-sampled paths the
+// estimator owns are dropped (design.md, "No double counting").
 class PathIntegrator : public Integrator {
  public:
-  explicit PathIntegrator(PathParams p) : p_(p) {}
+  explicit PathIntegrator(PathParams p, std::shared_ptr<const ChainEstimator> chains = nullptr)
+      : p_(p), chains_(std::move(chains)) {
+    if (chains_ && !chains_->active()) chains_.reset();  // effects follow the scene
+  }
   Color Li_hit(const Scene& scene, const Vec3& o, const Vec3& d, SurfaceInteraction si, PCG32& rng,
                Stats& stats) const override;
 
  private:
   PathParams p_;
+  std::shared_ptr<const ChainEstimator> chains_;
 };
 
 }  // namespace mpg

@@ -144,16 +144,17 @@ bool ManifoldWalk::make_vertex(const SurfaceInteraction& si, bool reflect, Manif
   const BSDFContext ctx = scene_.bsdfs.resolve(s.bsdf, si);
   if (!ctx.leaf || ctx.perturbed) return false;  // normal-mapped chains: not yet supported
   const BSDF& b = *ctx.leaf;
-  const bool is_dielectric = b.type == BSDFType::Dielectric ||
-                             (b.type == BSDFType::RoughDielectric && b.mf.ax < 0.1f && b.mf.ay < 0.1f);
-  const bool is_conductor = b.type == BSDFType::Conductor ||
-                            (b.type == BSDFType::RoughConductor && b.mf.ax < 0.1f && b.mf.ay < 0.1f);
+  // Smooth (delta) interfaces only: the path tracer samples rough ones as glossy,
+  // and chain ownership must match what it samples as specular.
+  const bool is_dielectric = b.type == BSDFType::Dielectric;
+  const bool is_conductor = b.type == BSDFType::Conductor;
   if (!(is_dielectric || (is_conductor && reflect))) return false;
   v = ManifoldVertex();
   v.shape = si.shape;
   v.prim = si.prim;
   v.reflect = reflect;
   v.eta = is_dielectric ? double(b.eta) : 1.0;
+  v.dielectric = is_dielectric;
   v.p = to_d(si.p);
   v.ng = to_d(si.ng);
   v.uv = si.uv;

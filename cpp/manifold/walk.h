@@ -38,7 +38,7 @@ enum class WalkFailure {
   WrongHemisphere, // converged to a configuration the vertex type does not allow
   Occluded,        // last segment to the light blocked
   NotSpecular,     // a vertex's BSDF is not a smooth reflector/refractor for its letter
-  Count
+  Count            // (Stats::walk_failures has this many entries)
 };
 const char* walk_failure_name(WalkFailure f);
 
@@ -56,6 +56,7 @@ struct ManifoldVertex {
   int shape = -1, prim = -1;
   bool reflect = true;   // letter: R or T
   double eta = 1.0;      // int_ior / ext_ior of the BSDF (refraction)
+  bool dielectric = false;
   DVec3 p{0.0};
   // mesh chart: p(u,v) = p + u e1 + v e2, unnormalised normal N(u,v) = nb + u dn1 + v dn2
   DVec3 e1{0.0}, e2{0.0}, nb{0.0}, dn1{0.0}, dn2{0.0};

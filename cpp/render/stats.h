@@ -1,6 +1,7 @@
 // Per-pass statistics, accumulated per thread and merged.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <map>
 #include <string>
@@ -17,19 +18,36 @@ struct Stats {
   uint64_t rejected_negative = 0;
   uint64_t depth_capped = 0;   // paths stopped by the hard bounce cap
   uint64_t path_vertices = 0;
+  // specular chains (sms, sms_star)
+  uint64_t chain_estimates = 0;      // separators where a chain was attempted
+  uint64_t chain_converged = 0;      // first trials that converged
+  uint64_t chain_contributions = 0;  // non-zero chain contributions
+  uint64_t bernoulli_trials = 0;     // extra trials spent estimating 1/P
+  uint64_t bernoulli_capped = 0;     // estimates stopped by max_trials (biased, counted)
+  uint64_t owned_dropped = 0;        // path-traced chain paths dropped (owned by the estimator)
+  uint64_t chain_ns = 0;             // time in chain estimation (summed over threads)
+  std::array<uint64_t, 11> walk_failures{};  // by WalkFailure
 
   void merge(const Stats& o) {
     samples += o.samples; camera_rays += o.camera_rays; rays += o.rays;
     shadow_rays += o.shadow_rays; rejected_nan += o.rejected_nan; rejected_inf += o.rejected_inf;
     rejected_negative += o.rejected_negative; depth_capped += o.depth_capped;
     path_vertices += o.path_vertices;
+    chain_estimates += o.chain_estimates; chain_converged += o.chain_converged;
+    chain_contributions += o.chain_contributions; bernoulli_trials += o.bernoulli_trials;
+    bernoulli_capped += o.bernoulli_capped; owned_dropped += o.owned_dropped; chain_ns += o.chain_ns;
+    for (size_t i = 0; i < walk_failures.size(); ++i) walk_failures[i] += o.walk_failures[i];
   }
   std::map<std::string, double> to_map() const {
     return {{"samples", double(samples)},           {"camera_rays", double(camera_rays)},
             {"rays", double(rays)},                 {"shadow_rays", double(shadow_rays)},
             {"rejected_nan", double(rejected_nan)}, {"rejected_inf", double(rejected_inf)},
             {"rejected_negative", double(rejected_negative)},
-            {"depth_capped", double(depth_capped)}, {"path_vertices", double(path_vertices)}};
+            {"depth_capped", double(depth_capped)}, {"path_vertices", double(path_vertices)},
+            {"chain_estimates", double(chain_estimates)}, {"chain_converged", double(chain_converged)},
+            {"chain_contributions", double(chain_contributions)},
+            {"bernoulli_trials", double(bernoulli_trials)}, {"bernoulli_capped", double(bernoulli_capped)},
+            {"owned_dropped", double(owned_dropped)}, {"chain_ns", double(chain_ns)}};
   }
 };
 

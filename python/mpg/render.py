@@ -16,12 +16,13 @@ from mpg.scene.desc import IntegratorDesc, SceneDesc
 
 # Integrators implemented by the core, and the papers' names that map onto
 # them until their own implementation lands (kept as hints, with a warning).
-IMPLEMENTED = {"path"}
+IMPLEMENTED = {"path", "sms", "sms_star"}
 PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters"}
-FALLBACK_TO_PATH = {
-    "path_sms_ss", "path_sms_ms", "manifold_path_guiding", "sms", "sms_star", "mpg",
-    "volpath", "ptracer",
-}
+CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
+                "threshold", "max_iterations", "form"}
+FALLBACK_TO_PATH = {"manifold_path_guiding", "mpg", "volpath", "ptracer", "path_filtered_ss"}
+# The SMS paper's integrators, with their parameter names, map onto `sms`.
+SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
 
 
 @dataclass
@@ -62,6 +63,9 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
         name = params.pop("type", "path")
     else:
         raise RenderError(f"integrator must be a name or a dict, got {type(integrator).__name__}")
+    if name in SMS_PAPER:
+        params = _sms_paper_params(scene, name, params, warnings)
+        name = "sms"
     if name in FALLBACK_TO_PATH:
         warnings.append(
             f"integrator '{name}' is not implemented yet; rendering with 'path' "
@@ -72,13 +76,52 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
         raise RenderError(
             f"unknown integrator '{name}' (available: {', '.join(sorted(IMPLEMENTED))})"
         )
-    core_params = {k: v for k, v in params.items() if k in PATH_PARAMS}
+    allowed = PATH_PARAMS | (CHAIN_PARAMS if name != "path" else set())
+    core_params = {k: v for k, v in params.items() if k in allowed}
+    for k in ("max_chain", "max_trials", "max_iterations"):
+        if k in core_params:
+            core_params[k] = int(core_params[k])
+    for k in ("continuation", "uniqueness_threshold", "threshold"):
+        if k in core_params:
+            core_params[k] = float(core_params[k])
     for k in ("max_depth", "rr_depth"):
         if k in core_params:
             core_params[k] = int(core_params[k])
     if "hide_emitters" in core_params:
         core_params["hide_emitters"] = bool(core_params["hide_emitters"])
     return name, core_params, warnings
+
+
+def _sms_paper_params(scene: Scene, name: str, params: dict, warnings: list[str]) -> dict:
+    """Translate path_sms_ss / path_sms_ms parameters to `sms`'s.
+
+    ss (single scattering): one vertex, R when every smooth specular shape is a
+    conductor, T otherwise; ms: `bounces` vertices of that letter."""
+    out = {k: v for k, v in params.items() if k in PATH_PARAMS}
+    conductors = dielectrics = 0
+    for sh in scene.desc.shapes:
+        b = sh.bsdf
+        while b.type in ("twosided", "normalmap"):
+            b = b.params.get("front") or b.params.get("nested")
+            if b is None:
+                break
+        if b is None:
+            continue
+        conductors += b.type == "conductor"
+        dielectrics += b.type == "dielectric"
+    letter = "R" if conductors and not dielectrics else "T"
+    n = 1 if name == "path_sms_ss" else int(params.get("bounces", 2))
+    out["tau"] = letter * n
+    if "solver_threshold" in params:
+        out["threshold"] = float(params["solver_threshold"])
+    for k in ("max_iterations", "uniqueness_threshold", "max_trials"):
+        if k in params:
+            out[k] = params[k]
+    out["max_trials"] = min(int(out.get("max_trials", 100000)), 100000)
+    if params.get("halfvector_constraints") in (True, "true"):
+        out["form"] = "half_vector"
+    warnings.append(f"integrator '{name}' runs as 'sms' with tau='{out['tau']}'")
+    return out
 
 
 class Progress:
@@ -150,7 +193,7 @@ def render(
         raise RenderError(f"threads must be at least 1, got {threads}")
     name, params, warnings = _resolve_integrator(scene, integrator)
     try:
-        integ = _core.make_integrator(name, params)
+        integ = _core.make_integrator(scene.core, name, params)
     except ValueError as e:
         raise RenderError(f"integrator '{name}': {e}") from None
     core_scene = scene.core

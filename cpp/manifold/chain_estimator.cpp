@@ -1,0 +1,294 @@
+#include "manifold/chain_estimator.h"
+
+#include <chrono>
+
+#include "scene/fresnel.h"
+
+namespace mpg {
+
+static_assert(size_t(WalkFailure::Count) == std::tuple_size<decltype(Stats::walk_failures)>::value,
+              "Stats::walk_failures must have one entry per WalkFailure");
+
+namespace {
+DVec3 to_d(const Vec3& v) { return DVec3(v.x, v.y, v.z); }
+Vec3 to_f(const DVec3& v) { return Vec3(float(v.x), float(v.y), float(v.z)); }
+
+// A BSDF node that the walk treats as one smooth specular interface.
+bool specular_node(const BSDFSet& b, int id) {
+  if (id < 0) return false;
+  const BSDF& n = b.nodes[size_t(id)];
+  if (n.type == BSDFType::Dielectric || n.type == BSDFType::Conductor) return true;
+  if (n.type == BSDFType::TwoSided) return specular_node(b, n.front) && specular_node(b, n.back);
+  return false;
+}
+}  // namespace
+
+ChainEstimator::ChainEstimator(const Scene& scene, ChainParams p)
+    : scene_(scene), p_(p), walk_(scene, p.walk) {
+  specular_shape_.assign(scene.shapes.size(), 0);
+  std::vector<float> areas;
+  for (size_t i = 0; i < scene.shapes.size(); ++i) {
+    if (specular_node(scene.bsdfs, scene.shapes[i].bsdf) && scene.shapes[i].emitter < 0) {
+      specular_shape_[i] = 1;
+      seed_shapes_.push_back(int(i));
+      areas.push_back(scene.shapes[i].area);
+    }
+  }
+  seed_dist_.build(areas);
+  std::vector<float> w;
+  for (size_t e = 0; e < scene.emitters.size(); ++e) {
+    const Emitter& em = scene.emitters[e];
+    const bool chain = em.type == Emitter::Type::Area || em.type == Emitter::Type::Point ||
+                       em.type == Emitter::Type::Spot;
+    if (chain && em.power > 0.f && std::isfinite(em.power)) {
+      chain_lights_.push_back(int(e));
+      w.push_back(em.power);
+    }
+  }
+  light_dist_.build(w);
+  // Effects follow the scene: no specular caster or no chain emitter, no work.
+  active_ = !seed_dist_.empty() && !light_dist_.empty();
+  if (p_.mode == ChainParams::Mode::Sms && p_.tau.empty()) active_ = false;
+}
+
+int ChainEstimator::max_len(uint32_t depth, uint32_t max_depth) const {
+  int cap = p_.mode == ChainParams::Mode::Sms ? int(p_.tau.size()) : p_.max_chain;
+  if (max_depth != uint32_t(-1)) {
+    const long room = long(max_depth) - long(depth) - 2;
+    cap = int(std::min<long>(cap, room));
+  }
+  return cap;
+}
+
+bool ChainEstimator::owns(uint32_t depth, uint32_t max_depth, const std::string& tau) const {
+  if (!active_ || tau.empty()) return false;
+  const int n = int(tau.size());
+  if (n > max_len(depth, max_depth)) return false;
+  if (p_.mode == ChainParams::Mode::Sms) return tau == p_.tau;
+  return true;
+}
+
+double ChainEstimator::pmf_n(int n, int nmax) const {
+  if (p_.mode == ChainParams::Mode::Sms) return 1.0;
+  const double q = p_.continuation;
+  if (n < 1 || n > nmax) return 0.0;
+  return n < nmax ? std::pow(q, n - 1) * (1.0 - q) : std::pow(q, n - 1);
+}
+
+int ChainEstimator::sample_n(float u, int nmax) const {
+  if (p_.mode == ChainParams::Mode::Sms) return int(p_.tau.size());
+  double c = 0.0;
+  for (int n = 1; n < nmax; ++n) {
+    c += pmf_n(n, nmax);
+    if (u < c) return n;
+  }
+  return nmax;
+}
+
+bool ChainEstimator::sample_light(PCG32& rng, LightPoint& lp) const {
+  float u = rng.next_float();
+  const size_t k = light_dist_.sample(u);
+  const Emitter& e = scene_.emitters[size_t(chain_lights_[k])];
+  const double psel = light_dist_.pmf(k);
+  lp.emitter = chain_lights_[k];
+  if (e.type == Emitter::Type::Area) {
+    const Shape& s = scene_.shapes[size_t(e.shape)];
+    Vec3 p, n;
+    s.sample_position(Vec2(rng.next_float(), rng.next_float()), p, n);
+    lp.p = to_d(p);
+    lp.n = to_d(n);
+    lp.value = e.value;
+    lp.pdf = psel / double(s.area);
+    lp.point = false;
+  } else {
+    lp.p = to_d(e.position);
+    lp.n = DVec3(0.0, 1.0, 0.0);  // any: only used for the (unused) light chart
+    lp.value = e.value;
+    lp.pdf = psel;
+    lp.point = true;
+  }
+  return lp.pdf > 0.0;
+}
+
+bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
+                           PCG32& rng, ManifoldChain& chain, std::string& tau, Stats& st) const {
+  // x_1 uniform by area on the specular shapes; the seed direction aims at it.
+  float u = rng.next_float();
+  const size_t k = seed_dist_.sample(u);
+  Vec3 p1, n1;
+  scene_.shapes[size_t(seed_shapes_[k])].sample_position(Vec2(rng.next_float(), rng.next_float()), p1, n1);
+  const DVec3 dir = to_d(p1) - xD;
+  if (!(glm::length(dir) > 0.0)) return false;
+  WalkFailure why = WalkFailure::None;
+  chain.xL = lp.p;
+  chain.nL = lp.n;
+  if (p_.mode == ChainParams::Mode::Sms) {
+    tau = p_.tau;
+    if (!walk_.trace_seed(xD, nD, dir, tau, chain, why)) {
+      st.walk_failures[size_t(why)]++;
+      return false;
+    }
+  } else {
+    // Trace n vertices choosing R/T at dielectrics by their Fresnel reflectance.
+    chain.xD = xD;
+    chain.nD = nD;
+    chain.v.clear();
+    tau.clear();
+    DVec3 o = xD, on = nD, d = glm::normalize(dir);
+    for (int i = 0; i < n; ++i) {
+      const Vec3 of = offset_ray_origin(to_f(o), to_f(on), to_f(d));
+      const SurfaceInteraction si = scene_.intersect(of, to_f(d), 0.f, kInf);
+      if (!si.valid || !is_chain_shape(si.shape)) {
+        st.walk_failures[size_t(WalkFailure::LeftSurface)]++;
+        return false;
+      }
+      ManifoldVertex v;
+      if (!walk_.make_vertex(si, true, v)) {
+        st.walk_failures[size_t(WalkFailure::NotSpecular)]++;
+        return false;
+      }
+      const DVec3 wi = -d;
+      const double ci = glm::dot(wi, v.n);
+      bool reflect = true;
+      if (v.dielectric) {
+        const float F = fresnel_dielectric(float(ci), float(v.eta)).F;
+        reflect = rng.next_float() < F;
+      }
+      v.reflect = reflect;
+      if (reflect) {
+        d = 2.0 * ci * v.n - wi;
+      } else {
+        const double eta_rel = ci > 0.0 ? v.eta : 1.0 / v.eta;
+        const DVec3 nn = ci > 0.0 ? v.n : -v.n;
+        const double c = std::abs(ci);
+        const double sin2t = (1.0 - c * c) / (eta_rel * eta_rel);
+        if (sin2t >= 1.0) {
+          st.walk_failures[size_t(WalkFailure::TotalInternalReflection)]++;
+          return false;
+        }
+        d = -wi / eta_rel + nn * (c / eta_rel - std::sqrt(1.0 - sin2t));
+      }
+      d = glm::normalize(d);
+      o = v.p;
+      on = v.ng;
+      tau.push_back(reflect ? 'R' : 'T');
+      chain.v.push_back(v);
+    }
+  }
+  const WalkResult r = walk_.solve(chain);
+  if (!r.converged) {
+    st.walk_failures[size_t(r.failure)]++;
+    return false;
+  }
+  return true;
+}
+
+Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau) const {
+  // Product of the specular lobes' weights seen from x_D toward x_L, with the
+  // path tracer's conventions (Fresnel, textures, 1/eta^2 radiance scaling).
+  Color k(1.f);
+  const size_t n = c.v.size();
+  for (size_t i = 0; i < n; ++i) {
+    const ManifoldVertex& v = c.v[i];
+    const DVec3 xp = i == 0 ? c.xD : c.v[i - 1].p;
+    SurfaceInteraction si;
+    si.valid = true;
+    si.p = to_f(v.p);
+    si.ng = to_f(v.ng);
+    si.sh = Frame(to_f(v.n));
+    si.uv = v.uv;
+    si.wi = to_f(glm::normalize(xp - v.p));
+    si.shape = v.shape;
+    const BSDFContext ctx = scene_.bsdfs.resolve(scene_.shapes[size_t(v.shape)].bsdf, si);
+    if (!ctx.leaf) return Color(0.f);
+    const float ci = glm::dot(si.wi, ctx.frame.n);
+    const BSDF& b = *ctx.leaf;
+    if (b.type == BSDFType::Conductor) {
+      if (ci <= 0.f || tau[i] != 'R') return Color(0.f);
+      k *= scene_.bsdfs.tex(b.specular_reflectance, v.uv) * fresnel_conductor(ci, b.eta_c, b.k_c);
+    } else if (b.type == BSDFType::Dielectric) {
+      const DielectricFresnel f = fresnel_dielectric(ci, b.eta);
+      if (tau[i] == 'R') k *= scene_.bsdfs.tex(b.specular_reflectance, v.uv) * f.F;
+      else k *= scene_.bsdfs.tex(b.specular_transmittance, v.uv) * ((1.f - f.F) * f.eta_ti * f.eta_ti);
+    } else {
+      return Color(0.f);
+    }
+  }
+  return k;
+}
+
+Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
+                               uint32_t max_depth, PCG32& rng, Stats& st) const {
+  if (!active_) return Color(0.f);
+  const int nmax = max_len(depth, max_depth);
+  if (nmax < 1) return Color(0.f);
+  const auto t0 = std::chrono::steady_clock::now();
+  st.chain_estimates++;
+  Color result(0.f);
+  LightPoint lp;
+  const int n = sample_n(rng.next_float(), nmax);
+  const DVec3 xD = to_d(si.p), nD = to_d(si.ng);
+  ManifoldChain chain;
+  std::string tau;
+  do {
+    if (!sample_light(rng, lp)) break;
+    if (!trial(xD, nD, lp, n, rng, chain, tau, st)) break;
+    st.chain_converged++;
+    const ManifoldVertex& last = chain.v.back();
+    // One-sided area light; visibility of the last segment (the others are first hits).
+    if (!lp.point && glm::dot(last.p - lp.p, lp.n) <= 0.0) break;
+    const Vec3 wD = to_f(glm::normalize(chain.v[0].p - xD));
+    const Color f = scene_.bsdfs.eval(ctx, si.wi, wD);
+    if (is_black(f)) break;
+    const Color kap = kappa(chain, tau);
+    if (is_black(kap)) break;
+    {
+      const DVec3 dl = lp.p - last.p;
+      const double len = glm::length(dl);
+      const Vec3 o = offset_ray_origin(to_f(last.p), to_f(last.ng), to_f(dl));
+      const Vec3 dir = to_f(dl / len);
+      st.shadow_rays++;
+      if (scene_.occluded(o, dir, 0.f, float(len) * (1.f - 1e-4f))) break;
+    }
+    double G = 0.0;
+    Color Le = lp.value;
+    if (lp.point) {
+      if (!walk_.geometry_point(chain, G)) break;
+      const Emitter& e = scene_.emitters[size_t(lp.emitter)];
+      if (e.type == Emitter::Type::Spot) Le *= e.spot_falloff(e.frame.to_local(glm::normalize(to_f(last.p - lp.p))));
+    } else {
+      if (!walk_.geometry_area(chain, G)) break;
+    }
+    // <1/P>: repeat independent trials with the same n until the same solution returns.
+    const DVec3 w_star = glm::normalize(chain.v[0].p - xD);
+    const std::string tau_star = tau;
+    int K = 1;
+    ManifoldChain other;
+    std::string tau2;
+    for (;;) {
+      if (K >= p_.max_trials) {
+        st.bernoulli_capped++;
+        break;
+      }
+      st.bernoulli_trials++;
+      if (trial(xD, nD, lp, n, rng, other, tau2, st) && tau2 == tau_star &&
+          glm::length(glm::normalize(other.v[0].p - xD) - w_star) < p_.uniqueness_threshold)
+        break;
+      ++K;
+    }
+    double scale = G * double(K) / (lp.pdf * pmf_n(n, nmax));
+    if (lp.point) {
+      // Irradiance I kappa G; f already carries |cos theta_D|, which G contains too.
+      const float cosD = std::abs(glm::dot(wD, si.sh.n));
+      if (!(cosD > 0.f)) break;
+      scale /= double(cosD);
+    }
+    result = f * kap * Le * float(scale);
+    st.chain_contributions++;
+  } while (false);
+  st.chain_ns += uint64_t(std::chrono::duration_cast<std::chrono::nanoseconds>(
+      std::chrono::steady_clock::now() - t0).count());
+  return result;
+}
+
+}  // namespace mpg

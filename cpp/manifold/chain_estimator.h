@@ -1,0 +1,86 @@
+// Estimator of the light arriving at a separator x_D from a point x_L on a
+// light through specular chains (MPG Eq. 1 and 9; SMS, Zeltner et al. 2020):
+//
+//   f_s(x_D) * kappa * G * L_e / p(x_L) * <1/P(x*|x_D, x_L, n)> / P(n)
+//
+// with <1/P> the Bernoulli trial count (repeat seed + walk until the same
+// solution returns; supplemental Sec. 3.2) and P(n) analytic (Eq. 15).
+//
+// Seed distributions:
+//  - Sms:     one fixed type string tau; x_1 uniform by area on the caster
+//             shapes, the rest traced with the letters of tau.
+//  - SmsStar: n from a truncated geometric law (a Russian roulette with
+//             continuation probability q); x_1 uniform by area on all specular
+//             shapes; the type of each vertex drawn by Fresnel (MPG Sec. 5.4).
+//
+// Ownership (design.md "No double counting"): a path the path tracer samples
+// as separator -> specular vertices -> chain emitter is owned by this
+// estimator when owns(depth, tau) is true; the path tracer then drops it.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "core/distribution.h"
+#include "core/rng.h"
+#include "manifold/walk.h"
+#include "render/stats.h"
+#include "scene/scene.h"
+
+namespace mpg {
+
+struct ChainParams {
+  enum class Mode { Sms, SmsStar };
+  Mode mode = Mode::SmsStar;
+  std::string tau = "TT";          // Sms: the fixed chain type
+  int max_chain = 6;               // SmsStar: longest chain sampled (and owned)
+  float continuation = 0.5f;       // SmsStar: q of P(n) = q^(n-1) (1-q), truncated
+  double uniqueness_threshold = 1e-4;
+  int max_trials = 100000;
+  WalkConfig walk;
+};
+
+class ChainEstimator {
+ public:
+  ChainEstimator(const Scene& scene, ChainParams p);
+
+  bool active() const { return active_; }
+  // Does the estimator produce chains of type `tau` at a separator of loop depth
+  // `depth` (path tracer's convention, camera hit = 0) under `max_depth`?
+  bool owns(uint32_t depth, uint32_t max_depth, const std::string& tau) const;
+  // Is shape `s` a surface the walk accepts as a specular vertex?
+  bool is_chain_shape(int s) const { return specular_shape_[size_t(s)] != 0; }
+
+  // Contribution at x_D (already multiplied by f_s * |cos|); `wi` toward the camera.
+  Color estimate(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
+                 uint32_t max_depth, PCG32& rng, Stats& st) const;
+
+ private:
+  struct LightPoint {
+    DVec3 p{0.0}, n{0.0};
+    Color value{0.f};   // area: radiance; point/spot: intensity toward the chain handled later
+    double pdf = 0.0;   // area density incl. selection (area) or selection probability (point/spot)
+    bool point = false;
+    int emitter = -1;
+  };
+  bool sample_light(PCG32& rng, LightPoint& lp) const;
+  int max_len(uint32_t depth, uint32_t max_depth) const;
+  double pmf_n(int n, int nmax) const;
+  int sample_n(float u, int nmax) const;
+  // One trial: seed + walk. Fills chain and tau on success.
+  bool trial(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n, PCG32& rng,
+             ManifoldChain& chain, std::string& tau, Stats& st) const;
+  Color kappa(const ManifoldChain& chain, const std::string& tau) const;
+
+  const Scene& scene_;
+  ChainParams p_;
+  ManifoldWalk walk_;
+  bool active_ = false;
+  std::vector<char> specular_shape_;
+  std::vector<int> seed_shapes_;     // shapes seeds are drawn on
+  DiscreteDistribution seed_dist_;   // by area
+  std::vector<int> chain_lights_;    // emitters used as x_L
+  DiscreteDistribution light_dist_;  // by power
+};
+
+}  // namespace mpg
