@@ -1,0 +1,372 @@
+"""Reference images with their estimated per-pixel error, cached outside git.
+
+How a reference is made (`mpg-bench reference SCENE --time S | --spp N`):
+
+- Mitsuba 3 (the default when it is installed and the sidecar's "reference"
+  text does not say 'mpg'): its light tracer `ptracer` (converges floor caustics
+  fast) and its path tracer `path` (the only one of the two that sees through
+  glass and mirrors), each as >= K passes with distinct seeds; per pixel the
+  variance of the mean is the sample variance over passes / passes. The budget
+  is split evenly between the two.
+- mpg (`--method mpg`, or the sidecar says 'mpg'): one long mpg.render of
+  `--integrator` (default path); its variance is the per-pixel second-moment
+  estimate of the render loop.
+
+Combination rule (Mitsuba): per pixel, take the whole RGB estimate of the
+renderer with the lower variance. Two details make this unbiased:
+
+1. ptracer is only eligible where it estimates the pixel at all: pixels where a
+   primary ray (3x3 stratified per pixel, dilated by one pixel) hits a surface
+   with a delta BSDF lobe or misses the scene get `path` (ptracer renders glass
+   seen by the camera black, with zero variance — "lower variance" would pick it).
+2. The variances compared are not the pixel's own estimates but their mean over
+   the 5x5 neighbourhood *without the pixel itself*. A pixel's own mean and
+   variance estimates are correlated (a pass set that missed the rare bright
+   paths has both a low mean and a low variance), so choosing by its own
+   variance would favour low estimates: a downward bias. With box filtering the
+   neighbours' passes are independent of the pixel's (up to ptracer light
+   paths that splat into several pixels), so the choice does not depend on the
+   pixel's own values and each pixel keeps an unbiased estimate.
+
+Inverse-variance weighting is not used: with variances estimated from a few
+passes the weights correlate with the estimates (same bias as above), and
+ptracer's zero-variance black pixels would get infinite weight.
+
+The variance is compared in luminance with the channels taken as fully
+correlated, (sum_c w_c sigma_c)^2, which is how a renderer's channels behave (one
+path carries all three).
+
+Cache: DIR/<scene name>-<key>.{exr,json,png}; DIR is --cache, else $MPG_CACHE,
+else ~/.cache/mpg/references. The key hashes the scene file, the files it names
+(meshes, textures, includes), its parameters, and how the reference was made,
+so the same command finds (or re-creates) the same file.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import shlex
+from typing import Any
+
+import numpy as np
+
+from mpg.bench.runners import (
+    IntegratorSpec,
+    log,
+    mitsuba_importable,
+    parse_integrator,
+    run_mitsuba,
+    run_mpg,
+    scene_rfilter,
+)
+from mpg.bench.scenes import BenchError, BenchScene
+from mpg.metrics import EPS, region_mask
+
+LUM = np.array([0.2126, 0.7152, 0.0722])
+DEFAULT_SEED = 1_000_000   # far from the seeds the compared renders use (0 .. K-1)
+NEIGHBOURHOOD = 2          # radius of the window whose variances decide a pixel
+
+
+def cache_dir(arg: str | None = None) -> str:
+    return os.path.abspath(os.path.expanduser(
+        arg or os.environ.get("MPG_CACHE") or "~/.cache/mpg/references"))
+
+
+def lum_variance(var: np.ndarray) -> np.ndarray:
+    """Luminance variance of a pixel with fully correlated channels."""
+    return (np.sqrt(np.maximum(var, 0.0)) @ LUM) ** 2
+
+
+def neighbourhood_mean(v: np.ndarray, valid: np.ndarray, r: int = NEIGHBOURHOOD) -> np.ndarray:
+    """Mean of v over the valid pixels of the (2r+1)^2 window, excluding the centre
+    (inf where the window has no valid pixel)."""
+    h, w = v.shape
+    vm = np.where(valid, v, 0.0)
+    pv = np.pad(vm, r)
+    pm = np.pad(valid.astype(np.float64), r)
+    s = np.zeros((h, w))
+    c = np.zeros((h, w))
+    for dy in range(2 * r + 1):
+        for dx in range(2 * r + 1):
+            if dy == r and dx == r:
+                continue
+            s += pv[dy:dy + h, dx:dx + w]
+            c += pm[dy:dy + h, dx:dx + w]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(c > 0, s / np.maximum(c, 1), np.inf)
+
+
+def dilate(mask: np.ndarray, r: int = 1) -> np.ndarray:
+    h, w = mask.shape
+    p = np.pad(mask, r)
+    out = np.zeros_like(mask)
+    for dy in range(2 * r + 1):
+        for dx in range(2 * r + 1):
+            out |= p[dy:dy + h, dx:dx + w]
+    return out
+
+
+def combine(path_rgb, path_var, pt_rgb, pt_var, pt_eligible) -> tuple[np.ndarray, np.ndarray,
+                                                                       np.ndarray]:
+    """Per-pixel choice by lower neighbourhood variance (see the module doc).
+    Returns (rgb, variance, chose_ptracer mask)."""
+    lp = lum_variance(path_var)
+    lt = lum_variance(pt_var)
+    full = np.ones(lp.shape, dtype=bool)
+    choose = pt_eligible & (neighbourhood_mean(lt, pt_eligible) < neighbourhood_mean(lp, full))
+    rgb = np.where(choose[:, :, None], pt_rgb, path_rgb)
+    var = np.where(choose[:, :, None], pt_var, path_var)
+    return rgb.astype(np.float32), var.astype(np.float32), choose
+
+
+def convergence(rgb: np.ndarray, var: np.ndarray, box) -> dict[str, Any]:
+    """Relative standard error of the image mean and of the caustic-box mean (pixels
+    independent), median per-pixel relative error (luminance), and the relMSE the
+    reference's own noise adds to every comparison (mean var / (ref^2 + eps))."""
+    rgb = np.asarray(rgb, np.float64)
+    var = np.asarray(var, np.float64)
+
+    def rse(m):
+        x, v = rgb[m], var[m]
+        mean = x.mean()
+        return float(np.sqrt(v.sum()) / x.size / mean) if mean > 0 else None
+
+    lum = rgb @ LUM
+    pix_rel = np.sqrt(lum_variance(var)) / (np.abs(lum) + EPS)
+    floor = var / (rgb * rgb + EPS)
+    out = {
+        "rse_image_mean": rse(np.ones(rgb.shape[:2], bool)),
+        "median_pixel_rel_error": float(np.median(pix_rel)),
+        "relmse_floor_image": float(floor.mean()),
+        "rse_caustic_mean": None,
+        "median_pixel_rel_error_caustic": None,
+        "relmse_floor_caustic": None,
+    }
+    if box is not None:
+        m = region_mask(rgb.shape[:2], box)
+        out["rse_caustic_mean"] = rse(m)
+        out["median_pixel_rel_error_caustic"] = float(np.median(pix_rel[m]))
+        out["relmse_floor_caustic"] = float(floor[m].mean())
+    return out
+
+
+def choose_method(scene: BenchScene, method: str) -> str:
+    if method not in ("auto", "mitsuba", "mpg"):
+        raise BenchError(f"--method must be auto, mitsuba or mpg, got '{method}'")
+    if method != "auto":
+        return method
+    if "mpg" in scene.reference_hint.lower():
+        return "mpg"
+    if mitsuba_importable():
+        return "mitsuba"
+    log(f"mpg-bench: mitsuba is not installed; the reference of {scene.label} is an mpg render")
+    return "mpg"
+
+
+def recipe(scene: BenchScene, *, time: float | None, spp: int | None, passes: int, seed: int,
+           method: str, integrator: str) -> dict[str, Any]:
+    if (time is None) == (spp is None):
+        raise BenchError("give exactly one of --time and --spp for a reference")
+    if time is not None and not time > 0:
+        raise BenchError(f"--time must be positive, got {time}")
+    if spp is not None and spp < 1:
+        raise BenchError(f"--spp must be at least 1, got {spp}")
+    if passes < 2:
+        raise BenchError(f"--passes must be at least 2 (variance from passes), got {passes}")
+    m = choose_method(scene, method)
+    return {"method": m, "time": None if time is None else float(time),
+            "spp": None if spp is None else int(spp), "passes": int(passes), "seed": int(seed),
+            "integrator": integrator if m == "mpg" else None}
+
+
+def key_of(scene_hash: str, rec: dict[str, Any]) -> str:
+    return hashlib.sha256((scene_hash + json.dumps(rec, sort_keys=True)).encode()).hexdigest()
+
+
+def recreate_command(scene: BenchScene, rec: dict[str, Any]) -> str:
+    parts = ["mpg-bench", "reference", scene.path]
+    parts += ["--time", f"{rec['time']:g}"] if rec["time"] is not None else ["--spp",
+                                                                             str(rec["spp"])]
+    parts += ["--passes", str(rec["passes"]), "--seed", str(rec["seed"]),
+              "--method", rec["method"]]
+    if rec["method"] == "mpg":
+        parts += ["--integrator", rec["integrator"]]
+    for k, v in sorted(scene.params.items()):
+        parts += ["--param", f"{k}={v}"]
+    return " ".join(shlex.quote(p) for p in parts)
+
+
+def make_reference(scene: BenchScene, *, time: float | None = None, spp: int | None = None,
+                   passes: int = 8, seed: int = DEFAULT_SEED, method: str = "auto",
+                   integrator: str = "path", cache: str | None = None,
+                   force: bool = False) -> dict[str, Any]:
+    """Render (or find in the cache) a reference; returns its JSON record (with 'exr')."""
+    rec = recipe(scene, time=time, spp=spp, passes=passes, seed=seed, method=method,
+                 integrator=integrator)
+    scene_hash = scene.content_hash()
+    key = key_of(scene_hash, rec)
+    d = cache_dir(cache)
+    stem = os.path.join(d, f"{scene.name}-{key[:16]}")
+    if not force and os.path.isfile(stem + ".json") and os.path.isfile(stem + ".exr"):
+        with open(stem + ".json") as f:
+            info = json.load(f)
+        log(f"mpg-bench: reference of {scene.label} is cached: {stem}.exr")
+        return info
+    log(f"mpg-bench: rendering the reference of {scene.label} ({rec['method']}, "
+        + (f"{time:g} s" if time is not None else f"{spp} spp") + f", {passes} passes)")
+    renderers: list[dict[str, Any]] = []
+    notes: list[str] = []
+    if rec["method"] == "mpg":
+        spec = parse_integrator(integrator)
+        if spec.backend != "mpg":
+            raise BenchError(f"--integrator for an mpg reference must be an mpg integrator, "
+                             f"got '{integrator}'")
+        r = run_mpg(spec, scene, time=time, spp=spp, seed=seed)
+        rgb, var = r.rgb, r.variance
+        renderers.append({"renderer": f"mpg:{integrator}", "spp": r.spp, "seconds": r.seconds,
+                          "passes": r.stats.get("passes"), "seed": seed})
+        ptracer_fraction = 0.0
+        combination = "single mpg render (variance from its per-pixel second moment)"
+    else:
+        rgb, var, ptracer_fraction, combination = _mitsuba_reference(
+            scene, rec, renderers, notes)
+    if not (np.isfinite(rgb).all() and np.isfinite(var).all()):
+        raise BenchError(f"reference of {scene.label}: non-finite pixels; not cached")
+    from mpg.image import write_exr, write_png
+
+    os.makedirs(d, exist_ok=True)
+    write_exr(stem + ".exr", rgb, var)
+    write_png(stem + ".png", rgb)
+    info = {
+        "scene": scene.to_json(), "scene_hash": scene_hash, "key": key,
+        "created": _dt.datetime.now().isoformat(timespec="seconds"),
+        "recipe": rec, "renderers": renderers, "combination": combination,
+        "ptracer_fraction": ptracer_fraction, "notes": notes,
+        "resolution": [int(rgb.shape[1]), int(rgb.shape[0])],
+        "convergence": convergence(rgb, var, scene.caustic_box),
+        "exr": stem + ".exr", "png": stem + ".png",
+        "command": recreate_command(scene, rec), "versions": _versions(),
+    }
+    with open(stem + ".json", "w") as f:
+        json.dump(info, f, indent=2)
+    c = info["convergence"]
+    log(f"mpg-bench: wrote {stem}.exr (median pixel rel. error {c['median_pixel_rel_error']:.3g},"
+        f" image-mean rel. SE {_fmt(c['rse_image_mean'])})")
+    return info
+
+
+def _fmt(x) -> str:
+    return "–" if x is None else f"{x:.3g}"
+
+
+def _versions() -> dict[str, str]:
+    import mpg
+
+    out = {"mpg": mpg.__version__}
+    try:
+        from importlib.metadata import version
+
+        out["mitsuba"] = version("mitsuba")
+    except Exception:
+        pass
+    return out
+
+
+def _mitsuba_reference(scene: BenchScene, rec: dict, renderers: list, notes: list):
+    passes = rec["passes"]
+    want_pt = True
+    if scene_rfilter(scene) != "box":
+        want_pt = False
+        notes.append(f"ptracer not used: the scene's rfilter is '{scene_rfilter(scene)}' "
+                     "(light-tracer splats then correlate neighbouring pixels)")
+    n_renderers = 2 if want_pt else 1
+    results = {}
+    mask = None
+    for name in (["ptracer"] if want_pt else []) + ["path"]:
+        spec = IntegratorSpec(f"mitsuba:{name}", "mitsuba", name)
+        seed = rec["seed"] + (0 if name == "path" else 500_000)
+        try:
+            if rec["time"] is not None:
+                t = rec["time"] / n_renderers
+                res, m = run_mitsuba(spec, scene, seed=seed, checkpoints=[t],
+                                     target_pass_seconds=0.8 * t / passes, mask=name == "ptracer")
+            else:
+                res, m = run_mitsuba(spec, scene, seed=seed, spp=rec["spp"], passes=passes,
+                                     mask=name == "ptracer")
+        except BenchError as e:
+            if name == "ptracer":
+                notes.append(f"ptracer failed, path only: {e}")
+                log(f"mpg-bench: {e}; the reference uses path only")
+                continue
+            raise
+        r = res[0]
+        if r.variance is None:
+            raise BenchError(f"reference of {scene.label}: {spec.text} finished only one pass; "
+                             "give a larger budget")
+        if m is not None:
+            mask = m
+        results[name] = r
+        renderers.append({"renderer": spec.text, "variant": r.stats["variant"], "spp": r.spp,
+                          "passes": r.stats["passes"], "pass_spp": r.stats["pass_spp"],
+                          "seconds": r.seconds, "seed": seed,
+                          "integrator_params": r.stats["integrator_params"]})
+        log(f"  {spec.text} ({r.stats['variant']}): {r.spp} spp in {r.stats['passes']} passes, "
+            f"{r.seconds:.1f} s")
+    p = results["path"]
+    if "ptracer" not in results:
+        return (p.rgb, p.variance, 0.0,
+                "Mitsuba path only (variance from passes)")
+    t = results["ptracer"]
+    eligible = ~dilate(mask.astype(bool), 1)
+    rgb, var, chose = combine(p.rgb, p.variance, t.rgb, t.variance, eligible)
+    return (rgb, var, float(chose.mean()),
+            ("per pixel, the renderer (ptracer or path) with the lower luminance variance over "
+             f"the {2 * NEIGHBOURHOOD + 1}x{2 * NEIGHBOURHOOD + 1} neighbourhood excluding the "
+             "pixel; ptracer only where no primary ray hits a delta BSDF or misses "
+             "(dilated 1 px)"))
+
+
+def list_references(cache: str | None = None) -> list[dict[str, Any]]:
+    d = cache_dir(cache)
+    out = []
+    if not os.path.isdir(d):
+        return out
+    for fn in sorted(os.listdir(d)):
+        if fn.endswith(".json"):
+            try:
+                with open(os.path.join(d, fn)) as f:
+                    info = json.load(f)
+            except (OSError, ValueError):
+                continue
+            if isinstance(info, dict) and "scene_hash" in info and os.path.isfile(
+                    info.get("exr", "")):
+                out.append(info)
+    return out
+
+
+def find_reference(scene: BenchScene, cache: str | None = None) -> dict[str, Any] | None:
+    """The cached reference of this scene content + params with the lowest noise floor."""
+    h = scene.content_hash()
+    cands = [i for i in list_references(cache) if i["scene_hash"] == h]
+    if not cands:
+        return None
+    return min(cands, key=lambda i: i["convergence"]["relmse_floor_image"])
+
+
+def load_reference(info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray | None]:
+    from mpg.image import read_exr
+
+    return read_exr(info["exr"])
+
+
+def get_or_make(scene: BenchScene, cache: str | None, time: float,
+                passes: int = 8) -> dict[str, Any]:
+    info = find_reference(scene, cache)
+    if info is not None:
+        return info
+    log(f"mpg-bench: no cached reference for {scene.label}; making one ({time:g} s). "
+        f"For a better one: mpg-bench reference {scene.path} --time SECONDS")
+    return make_reference(scene, time=time, passes=passes, cache=cache)

@@ -1,0 +1,194 @@
+"""Smoke run of mpg-bench (reference, compare, curves, costs) on a tiny scene.
+
+scenes/sphere_glass.xml at 24x24 (--param res=24), copied beside a sidecar with a
+caustic box; budgets of a fraction of a second, 1-2 seeds. Checks the output
+folders (report.md, results.json with finite numbers, PNGs). Mitsuba entries run
+when mitsuba is importable and are skipped otherwise. About 20-30 s on 2 cores.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+
+from mpg.bench import cli, curves, reference, runners
+
+HAS_MI = importlib.util.find_spec("mitsuba") is not None
+INTEGRATORS = ["path"] + (["mitsuba:path", "mitsuba:ptracer"] if HAS_MI else [])
+BOX = [0.4, 0.6, 0.8, 0.85]
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory, scenes_dir):
+    d = tmp_path_factory.mktemp("bench")
+    shutil.copy(scenes_dir / "sphere_glass.xml", d / "tiny.xml")
+    (d / "tiny.json").write_text(json.dumps({
+        "name": "tiny", "description": "sphere_glass for the smoke test", "chains": ["TT"],
+        "caustic_box": BOX, "reference": "mitsuba ptracer+path"}))
+    cache = d / "cache"
+    args = ["reference", str(d / "tiny.xml"), "--param", "res=24", "--time", "1",
+            "--passes", "4", "--cache", str(cache)]
+    if not HAS_MI:
+        args += ["--method", "mpg"]
+    assert cli.main(args) == 0
+    return {"dir": d, "scene": str(d / "tiny.xml"), "cache": str(cache)}
+
+
+def finite_numbers(x, path="results"):
+    """Every number in a JSON tree is finite (None allowed for absent values)."""
+    if isinstance(x, dict):
+        for k, v in x.items():
+            finite_numbers(v, f"{path}.{k}")
+    elif isinstance(x, list):
+        for i, v in enumerate(x):
+            finite_numbers(v, f"{path}[{i}]")
+    elif isinstance(x, float):
+        assert math.isfinite(x), path
+
+
+def check_out(out, pngs):
+    assert (out / "report.md").is_file()
+    text = (out / "report.md").read_text()
+    assert "mpg-bench" in text
+    data = json.loads((out / "results.json").read_text())
+    finite_numbers(data)
+    for p in pngs:
+        assert (out / p).is_file() and (out / p).stat().st_size > 1000, p
+    return data, text
+
+
+def test_reference(env, capsys):
+    refs = reference.list_references(env["cache"])
+    assert len(refs) == 1
+    info = refs[0]
+    assert info["scene"]["params"] == {"res": "24"}
+    assert info["resolution"] == [24, 24]
+    assert info["recipe"]["method"] == ("mitsuba" if HAS_MI else "mpg")
+    names = {r["renderer"] for r in info["renderers"]}
+    assert names == ({"mitsuba:ptracer", "mitsuba:path"} if HAS_MI else {"mpg:path"})
+    for r in info["renderers"]:
+        assert r["spp"] > 0 and r["seconds"] > 0
+    c = info["convergence"]
+    for k in ("rse_image_mean", "median_pixel_rel_error", "rse_caustic_mean",
+              "relmse_floor_image", "relmse_floor_caustic"):
+        assert c[k] is not None and math.isfinite(c[k]) and c[k] >= 0, k
+    rgb, var = reference.load_reference(info)
+    assert rgb.shape == (24, 24, 3) and var is not None and np.isfinite(var).all()
+    assert rgb.mean() > 0.01
+    assert info["command"].startswith("mpg-bench reference ")
+    # the same command finds it in the cache; --list shows it
+    again = reference.make_reference(runners_scene(env), time=1, passes=4,
+                                     method=info["recipe"]["method"], cache=env["cache"])
+    assert again["key"] == info["key"]
+    capsys.readouterr()
+    assert cli.main(["reference", "--list", "--cache", env["cache"]]) == 0
+    assert "tiny[res=24]" in capsys.readouterr().out
+
+
+def runners_scene(env):
+    from mpg.bench.scenes import resolve_scene
+
+    return resolve_scene(env["scene"], {"res": "24"})
+
+
+def test_compare(env):
+    out = env["dir"] / "compare"
+    assert cli.main(["compare", "--scenes", env["scene"], "--param", "res=24", "--integrators",
+                     *INTEGRATORS, "--time", "0.4", "--seeds", "2", "--cache", env["cache"],
+                     "--out", str(out)]) == 0
+    data, text = check_out(out, ["compare-tiny_res_24_.png"])
+    (sc,) = data["scenes"]
+    assert [m["integrator"] for m in sc["methods"]] == INTEGRATORS
+    for m in sc["methods"]:
+        assert len(m["runs"]) == 2
+        for region in ("image", "caustic"):
+            for k in ("mse", "relmse", "mape"):
+                s = m["summary"][region][k]
+                assert s["n"] == 2 and s["mean"] > 0 and s["std"] >= 0
+        assert 0.2 < m["summary"]["seconds"]["mean"] < 1.0
+    assert "relMSE caustic" in text
+
+
+def test_curves(env):
+    out = env["dir"] / "curves"
+    integ = ["path"] + (["mitsuba:ptracer"] if HAS_MI else [])
+    assert cli.main(["curves", "--scenes", env["scene"], "--param", "res=24", "--integrators",
+                     *integ, "--times", "0.2", "0.4", "--seeds", "2", "--cache", env["cache"],
+                     "--out", str(out)]) == 0
+    data, text = check_out(out, ["curves-tiny_res_24_.png"])
+    (sc,) = data["scenes"]
+    for m in sc["methods"]:
+        assert [p["budget"] for p in m["points"]] == [0.2, 0.4]
+        for p in m["points"]:
+            assert p["summary"]["image"]["relmse"]["mean"] > 0
+    tt = sc["time_to_target_image"]
+    assert tt["target_relmse"] > 0 and tt["methods"]["path"]["seconds"] > 0
+    assert "Time to relMSE" in text
+
+
+def test_costs(env):
+    out = env["dir"] / "costs"
+    assert cli.main(["costs", "--scenes", env["scene"], "--param", "res=24", "--integrators",
+                     *INTEGRATORS, "--time", "0.3", "--out", str(out)]) == 0
+    data, text = check_out(out, ["costs.png"])
+    assert [r["integrator"] for r in data["rows"]] == INTEGRATORS
+    for r in data["rows"]:
+        assert r["stats"]["spp"] > 0 and r["stats"]["seconds"] > 0
+    assert "–" in text     # path reports no guiding statistics
+
+
+def test_missing_mitsuba_is_skipped(env, monkeypatch):
+    monkeypatch.setattr(runners, "mitsuba_importable", lambda: False)
+    out = env["dir"] / "nomi"
+    assert cli.main(["compare", "--scenes", env["scene"], "--param", "res=24", "--integrators",
+                     "path", "mitsuba:path", "--time", "0.2", "--seeds", "1", "--cache",
+                     env["cache"], "--out", str(out)]) == 0
+    data, text = check_out(out, [])
+    (sc,) = data["scenes"]
+    assert [m["integrator"] for m in sc["methods"]] == ["path"]
+    assert sc["skipped"][0]["integrator"] == "mitsuba:path"
+    assert "mitsuba is not installed" in text
+
+
+def test_bad_inputs(env, capsys):
+    assert cli.main(["compare", "--scenes", "no_such_scene"]) == 1
+    assert "not found" in capsys.readouterr().err
+    assert cli.main(["compare", "--scenes", env["scene"], "--integrators", "foo:bar"]) == 1
+    assert cli.main(["reference", env["scene"]]) == 1
+
+
+def test_time_to_target():
+    t = [1.0, 2.0, 4.0, 8.0]
+    e = [0.8, 0.4, 0.2, 0.1]
+    r = curves.time_to_target(t, e, 0.3)
+    assert r["seconds"] == pytest.approx(2.0 * 2 ** (math.log(0.3 / 0.4) / math.log(0.5)))
+    assert not r["extrapolated"]
+    r = curves.time_to_target(t, e, 0.05)          # below the range: 1/t from the last point
+    assert r["seconds"] == pytest.approx(16.0) and r["extrapolated"]
+    flat = curves.time_to_target(t, [0.5, 0.49, 0.48, 0.47], 0.1)
+    assert flat["seconds"] is None and flat["not_reached"]
+
+
+def test_reference_combination_rule():
+    h = w = 12
+    path = np.full((h, w, 3), 1.0)
+    pt = np.full((h, w, 3), 1.0)
+    path_var = np.full((h, w, 3), 0.5)
+    pt_var = np.full((h, w, 3), 0.1)
+    eligible = np.ones((h, w), bool)
+    eligible[:, :3] = False                         # "glass seen by the camera"
+    pt[:, :3] = 0.0
+    pt_var[:, :3] = 0.0                             # black with zero variance there
+    pt_var[6, 6] = 2.0             # above path's 0.5, but its own variance does not decide
+    rgb, var, chose = reference.combine(path, path_var, pt, pt_var, eligible)
+    assert not chose[:, :3].any() and (rgb[:, :3] == 1.0).all()
+    assert chose[:, 3:].all()
+    assert chose[6, 6] and var[6, 6, 0] == 2.0
+    # path wins where its neighbourhood variance is lower
+    rgb, var, chose = reference.combine(path, np.full((h, w, 3), 0.01), pt, pt_var, eligible)
+    assert not chose.any()
