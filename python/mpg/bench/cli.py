@@ -18,15 +18,21 @@ from collections.abc import Sequence
 
 from mpg.errors import MPGError
 
-DEFAULT_SCENES = ["sphere_glass", "slab_glass"]
+# The default suite: the eval scenes that are not part of a parameter series (when
+# scenes/eval exists), else the two development scenes. "series:NAME" on the command
+# line expands to a series' scenes in order of their value.
+DEFAULT_SUITE = ["sphere", "slab", "double_slabs", "ring", "pool", "plane", "sphere_point",
+                 "diffuse_room"]
+DEFAULT_SCENES = ["default"]
 DEFAULT_INTEGRATORS = ["path", "mitsuba:path", "mitsuba:ptracer"]
 
 
 def _common(p: argparse.ArgumentParser, scenes: bool = True) -> None:
     if scenes:
         p.add_argument("--scenes", nargs="+", default=DEFAULT_SCENES, metavar="SCENE",
-                       help="scene files or names (scenes/eval/NAME.xml, scenes/NAME.xml); "
-                       f"default {' '.join(DEFAULT_SCENES)}")
+                       help="scene files or names (scenes/eval/NAME.xml, scenes/NAME.xml), "
+                       "'series:NAME' (a series of scenes/eval), or 'default' (the default "
+                       f"suite: {' '.join(DEFAULT_SUITE)})")
         p.add_argument("--integrators", nargs="+", default=DEFAULT_INTEGRATORS, metavar="ENTRY",
                        help="mpg integrator names, or mitsuba:NAME[@VARIANT]; default "
                        f"{' '.join(DEFAULT_INTEGRATORS)}")
@@ -133,7 +139,7 @@ def _run(args, argv) -> int:
         print(info["exr"])
         return 0
 
-    scenes = [resolve_scene(s, params) for s in args.scenes]
+    scenes = [resolve_scene(s, params) for s in expand_scenes(args.scenes)]
     specs = [parse_integrator(t) for t in args.integrators]
     out = report.out_dir(args.command, args.out)
     if args.command == "compare":
@@ -155,6 +161,38 @@ def _run(args, argv) -> int:
     print(out)
     print(f"mpg-bench: wrote {out}/report.md", file=sys.stderr)
     return 0
+
+
+def expand_scenes(names: Sequence[str]) -> list[str]:
+    import glob
+    import json
+    import os
+
+    from mpg.bench.scenes import REPO, BenchError
+
+    eval_dir = next((d for d in (os.path.join("scenes", "eval"),
+                                 os.path.join(REPO, "scenes", "eval")) if os.path.isdir(d)), None)
+    out: list[str] = []
+    for n in names:
+        if n == "default":
+            have = [s for s in DEFAULT_SUITE
+                    if eval_dir and os.path.isfile(os.path.join(eval_dir, s + ".xml"))]
+            out += have or ["sphere_glass", "slab_glass"]
+        elif n.startswith("series:"):
+            series = []
+            for f in sorted(glob.glob(os.path.join(eval_dir or "", "*.json"))):
+                with open(f) as fh:
+                    sc = json.load(fh)
+                se = sc.get("series") or {}
+                if se.get("name") == n[len("series:"):]:
+                    series.append((se.get("value", 0), os.path.splitext(f)[0] + ".xml"))
+            if not series:
+                raise BenchError(f"no scenes in series '{n[len('series:'):]}' "
+                                 f"(in {eval_dir or 'scenes/eval'})")
+            out += [p for _, p in sorted(series)]
+        else:
+            out.append(n)
+    return out
 
 
 def _list(infos, d: str) -> int:

@@ -73,12 +73,33 @@ def delta_or_miss_mask(mi, scene, k: int = 3):
     return np.array(bad, dtype=bool).reshape(h, w, n).any(axis=2)
 
 
+def load_scene(mi, path: str, params: dict):
+    """mi.load_file, but with unused properties (the SMS/MPG shape hints that Mitsuba's
+    plugins do not read) logged instead of raised, when this Mitsuba has mi.parser (3.6+)."""
+    import os
+
+    params = {k: str(v) for k, v in params.items()}
+    if not hasattr(mi, "parser"):
+        return mi.load_file(path, **params)
+    fr = mi.file_resolver() if hasattr(mi, "file_resolver") else \
+        mi.Thread.thread().file_resolver()
+    folder = os.path.dirname(os.path.abspath(path))
+    if folder not in [str(p) for p in fr]:
+        fr.prepend(folder)
+    cfg = mi.parser.ParserConfig(mi.variant())
+    cfg.unused_properties = mi.LogLevel.Debug
+    state = mi.parser.parse_file(cfg, path, **params)
+    mi.parser.transform_upgrade(cfg, state)
+    mi.parser.transform_resolve(cfg, state)
+    return mi.parser.instantiate(cfg, state)
+
+
 def run(job: dict) -> tuple[dict, dict]:
     import mitsuba as mi
     import numpy as np
 
     mi.set_variant(job["variant"])
-    scene = mi.load_file(job["scene"], **{k: str(v) for k, v in job["params"].items()})
+    scene = load_scene(mi, job["scene"], job["params"])
     integ = mi.load_dict({"type": job["integrator"], **job["integrator_params"]})
     seed = int(job["seed"])
     arrays: dict = {}
