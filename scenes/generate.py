@@ -828,7 +828,7 @@ def load_mitsuba(path: str, variant: str = "scalar_rgb", **params):
     import mitsuba as mi
 
     mi.set_variant(variant)
-    fr = mi.Thread.thread().file_resolver()
+    fr = mi.file_resolver() if hasattr(mi, "file_resolver") else mi.Thread.thread().file_resolver()
     folder = os.path.dirname(os.path.abspath(str(path)))
     if folder not in [str(p) for p in fr]:
         fr.prepend(folder)  # what mi.load_file does: meshes and textures relative to the scene
