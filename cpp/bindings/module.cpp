@@ -140,7 +140,10 @@ py::dict pass_to_dict(PassResult& r) {
   out["spp"] = r.spp;
   out["seconds"] = r.seconds;
   out["cancelled"] = r.cancelled;
-  out["stats"] = r.stats.to_map();
+  auto st = r.stats.to_map();
+  for (size_t i = 1; i < r.stats.walk_failures.size(); ++i)
+    st[std::string("walk_fail_") + walk_failure_name(WalkFailure(i))] = double(r.stats.walk_failures[i]);
+  out["stats"] = st;
   return out;
 }
 
@@ -513,7 +516,11 @@ PYBIND11_MODULE(_core, m) {
         return r;
       });
 
-  py::class_<Integrator, std::shared_ptr<Integrator>>(m, "Integrator");
+  py::class_<Integrator, std::shared_ptr<Integrator>>(m, "Integrator")
+      .def_property_readonly("chains_active", [](const Integrator& i) {
+        auto* p = dynamic_cast<const PathIntegrator*>(&i);
+        return p != nullptr && p->chains_active();
+      });
   m.def("make_integrator", &make_integrator, py::arg("scene"), py::arg("type"), py::arg("params"));
 
   py::class_<RenderJob, std::shared_ptr<RenderJob>>(m, "RenderJob")
@@ -580,6 +587,18 @@ PYBIND11_MODULE(_core, m) {
   });
   m.def("fresnel_conductor", [](float cos_i, float eta, float k) { return fresnel_conductor_1(cos_i, eta, k); });
   m.def("fresnel_diffuse_reflectance", &fresnel_diffuse_reflectance);
+  m.def("bernoulli_counts", [](double p, int n, int max_trials, uint64_t seed) {
+    // n estimates of 1/p from a synthetic trial succeeding with probability p
+    PCG32 rng = make_stream(seed, 0, 0, 0);
+    py::array_t<double> out(std::vector<ssize_t>{n});
+    int capped_total = 0;
+    for (int i = 0; i < n; ++i) {
+      bool capped = false;
+      out.mutable_data()[i] = bernoulli_count([&] { return rng.next_double() < p; }, max_trials, capped);
+      capped_total += capped;
+    }
+    return py::make_tuple(out, capped_total);
+  }, py::arg("p"), py::arg("n"), py::arg("max_trials"), py::arg("seed") = 0);
   m.def("manifold_walk", &manifold_walk, py::arg("scene"), py::arg("xD"), py::arg("nD"), py::arg("xL"),
         py::arg("nL"), py::arg("direction"), py::arg("tau"), py::arg("config") = py::dict());
 }

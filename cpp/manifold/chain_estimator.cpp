@@ -262,20 +262,17 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     // <1/P>: repeat independent trials with the same n until the same solution returns.
     const DVec3 w_star = glm::normalize(chain.v[0].p - xD);
     const std::string tau_star = tau;
-    int K = 1;
     ManifoldChain other;
     std::string tau2;
-    for (;;) {
-      if (K >= p_.max_trials) {
-        st.bernoulli_capped++;
-        break;
-      }
-      st.bernoulli_trials++;
-      if (trial(xD, nD, lp, n, rng, other, tau2, st) && tau2 == tau_star &&
-          glm::length(glm::normalize(other.v[0].p - xD) - w_star) < p_.uniqueness_threshold)
-        break;
-      ++K;
-    }
+    bool capped = false;
+    const int K = bernoulli_count(
+        [&] {
+          st.bernoulli_trials++;
+          return trial(xD, nD, lp, n, rng, other, tau2, st) && tau2 == tau_star &&
+                 glm::length(glm::normalize(other.v[0].p - xD) - w_star) < p_.uniqueness_threshold;
+        },
+        p_.max_trials, capped);
+    if (capped) st.bernoulli_capped++;
     double scale = G * double(K) / (lp.pdf * pmf_n(n, nmax));
     if (lp.point) {
       // Irradiance I kappa G; f already carries |cos theta_D|, which G contains too.

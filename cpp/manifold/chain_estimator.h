@@ -29,6 +29,22 @@
 
 namespace mpg {
 
+// The Bernoulli estimate of 1/P (supplemental Sec. 3.2): the number K of
+// independent trials until `matches()` succeeds, this one included, so
+// E[K] = 1/p. At max_trials it stops with capped = true (then E[K] < 1/p: the
+// caller counts it).
+template <typename F>
+int bernoulli_count(F&& matches, int max_trials, bool& capped) {
+  capped = false;
+  for (int k = 1;; ++k) {
+    if (matches()) return k;
+    if (k >= max_trials) {
+      capped = true;
+      return k;
+    }
+  }
+}
+
 struct ChainParams {
   enum class Mode { Sms, SmsStar };
   Mode mode = Mode::SmsStar;

@@ -49,6 +49,8 @@ struct Stats {
             {"bernoulli_trials", double(bernoulli_trials)}, {"bernoulli_capped", double(bernoulli_capped)},
             {"owned_dropped", double(owned_dropped)}, {"chain_ns", double(chain_ns)}};
   }
+  // Walk failures by reason (names from walk_failure_name, index = WalkFailure).
+  std::array<uint64_t, 11> failures() const { return walk_failures; }
 };
 
 }  // namespace mpg

@@ -196,6 +196,10 @@ def render(
         integ = _core.make_integrator(scene.core, name, params)
     except ValueError as e:
         raise RenderError(f"integrator '{name}': {e}") from None
+    if name != "path" and not integ.chains_active:
+        warnings.append(
+            f"'{name}': the scene has no shape the manifold walk supports (smooth dielectric or "
+            "conductor, no normal map) or no point/spot/area emitter; it renders as 'path'")
     core_scene = scene.core
     cam = scene.desc.camera
     h, w = int(cam.crop[3]), int(cam.crop[2])
