@@ -192,3 +192,12 @@ def test_reference_combination_rule():
     # path wins where its neighbourhood variance is lower
     rgb, var, chose = reference.combine(path, np.full((h, w, 3), 0.01), pt, pt_var, eligible)
     assert not chose.any()
+
+
+def test_reference_hint_from_sidecar():
+    assert reference.parse_hint("mitsuba path: purely diffuse") == ("mitsuba", ["path"])
+    assert reference.parse_hint("mitsuba ptracer+path: small light") == (
+        "mitsuba", ["ptracer", "path"])
+    assert reference.parse_hint("mitsuba ptracer: point light") == ("mitsuba", ["ptracer"])
+    assert reference.parse_hint("mpg long run (sms_star)") == ("mpg", None)
+    assert reference.parse_hint("") == (None, None)

@@ -7,7 +7,10 @@ How a reference is made (`mpg-bench reference SCENE --time S | --spp N`):
   fast) and its path tracer `path` (the only one of the two that sees through
   glass and mirrors), each as >= K passes with distinct seeds; per pixel the
   variance of the mean is the sample variance over passes / passes. The budget
-  is split evenly between the two.
+  is split evenly between the two. The sidecar's "reference" text can narrow
+  this: 'mitsuba path: ...' renders path only; 'mitsuba ptracer: ...' takes
+  ptracer wherever it sees the pixel (path would be biased there, e.g. a point
+  light seen through glass) and path only for the pixels ptracer cannot see.
 - mpg (`--method mpg`, or the sidecar says 'mpg'): one long mpg.render of
   `--integrator` (default path); its variance is the per-pixel second-moment
   estimate of the render loop.
@@ -48,6 +51,7 @@ import datetime as _dt
 import hashlib
 import json
 import os
+import re
 import shlex
 from typing import Any
 
@@ -153,17 +157,38 @@ def convergence(rgb: np.ndarray, var: np.ndarray, box) -> dict[str, Any]:
     return out
 
 
-def choose_method(scene: BenchScene, method: str) -> str:
+def parse_hint(text: str) -> tuple[str | None, list[str] | None]:
+    """The sidecar's "reference" text: 'mpg ...' -> ('mpg', None); 'mitsuba path: ...',
+    'mitsuba ptracer+path: ...', 'mitsuba ptracer: ...' -> ('mitsuba', the integrators)."""
+    m = re.match(r"\s*(mitsuba|mpg)\b\s*([a-z_]+(?:\s*\+\s*[a-z_]+)*)?", text.lower())
+    if not m:
+        return None, None
+    if m.group(1) == "mpg":
+        return "mpg", None
+    names = [n.strip() for n in (m.group(2) or "").split("+") if n.strip()]
+    names = [n for n in names if n in ("path", "ptracer")]
+    return "mitsuba", names or None
+
+
+def choose_method(scene: BenchScene, method: str) -> tuple[str, list[str] | None]:
+    """(method, Mitsuba integrators): --method, else the sidecar hint, else Mitsuba
+    ptracer+path when installed, else mpg."""
     if method not in ("auto", "mitsuba", "mpg"):
         raise BenchError(f"--method must be auto, mitsuba or mpg, got '{method}'")
-    if method != "auto":
-        return method
-    if "mpg" in scene.reference_hint.lower():
-        return "mpg"
-    if mitsuba_importable():
-        return "mitsuba"
-    log(f"mpg-bench: mitsuba is not installed; the reference of {scene.label} is an mpg render")
-    return "mpg"
+    hint_method, hint_names = parse_hint(scene.reference_hint)
+    m = method if method != "auto" else (hint_method or "mitsuba")
+    if m == "mitsuba" and not mitsuba_importable():
+        if method == "mitsuba":
+            raise BenchError("--method mitsuba: mitsuba is not installed")
+        log(f"mpg-bench: mitsuba is not installed; the reference of {scene.label} is an mpg "
+            "render")
+        m = "mpg"
+    if m == "mpg":
+        return "mpg", None
+    names = hint_names or ["ptracer", "path"]
+    if "ptracer" in names and "path" not in names:
+        names = names + ["path"]    # path fills the pixels the light tracer cannot see
+    return "mitsuba", sorted(set(names), key=["ptracer", "path"].index)
 
 
 def recipe(scene: BenchScene, *, time: float | None, spp: int | None, passes: int, seed: int,
@@ -176,8 +201,8 @@ def recipe(scene: BenchScene, *, time: float | None, spp: int | None, passes: in
         raise BenchError(f"--spp must be at least 1, got {spp}")
     if passes < 2:
         raise BenchError(f"--passes must be at least 2 (variance from passes), got {passes}")
-    m = choose_method(scene, method)
-    return {"method": m, "time": None if time is None else float(time),
+    m, names = choose_method(scene, method)
+    return {"method": m, "mitsuba_integrators": names, "time": None if time is None else float(time),
             "spp": None if spp is None else int(spp), "passes": int(passes), "seed": int(seed),
             "integrator": integrator if m == "mpg" else None}
 
@@ -277,8 +302,12 @@ def _versions() -> dict[str, str]:
 
 def _mitsuba_reference(scene: BenchScene, rec: dict, renderers: list, notes: list):
     passes = rec["passes"]
-    want_pt = True
-    if scene_rfilter(scene) != "box":
+    names = rec["mitsuba_integrators"]
+    want_pt = "ptracer" in names
+    # the sidecar named ptracer alone: path only fills the pixels ptracer cannot see
+    pt_only = want_pt and scene.reference_hint and "path" not in (parse_hint(
+        scene.reference_hint)[1] or ["path"])
+    if want_pt and scene_rfilter(scene) != "box":
         want_pt = False
         notes.append(f"ptracer not used: the scene's rfilter is '{scene_rfilter(scene)}' "
                      "(light-tracer splats then correlate neighbouring pixels)")
@@ -321,6 +350,15 @@ def _mitsuba_reference(scene: BenchScene, rec: dict, renderers: list, notes: lis
                 "Mitsuba path only (variance from passes)")
     t = results["ptracer"]
     eligible = ~dilate(mask.astype(bool), 1)
+    if pt_only:
+        chose = eligible
+        rgb = np.where(chose[:, :, None], t.rgb, p.rgb).astype(np.float32)
+        var = np.where(chose[:, :, None], t.variance, p.variance).astype(np.float32)
+        notes.append("the sidecar names ptracer only: ptracer wherever it can see the pixel, "
+                     "path elsewhere (paths neither reaches, e.g. a point light seen through "
+                     "glass from a surface seen through glass, are missing there)")
+        return (rgb, var, float(chose.mean()),
+                "ptracer where eligible (sidecar), path for the pixels it cannot see")
     rgb, var, chose = combine(p.rgb, p.variance, t.rgb, t.variance, eligible)
     return (rgb, var, float(chose.mean()),
             ("per pixel, the renderer (ptracer or path) with the lower luminance variance over "
