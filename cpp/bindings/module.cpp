@@ -305,16 +305,10 @@ py::dict manifold_walk(const Scene& s, py::object xD, py::object nD, py::object 
         ManifoldChain cp = chain, cm = chain;
         for (int sgn = -1; sgn <= 1; sgn += 2) {
           ManifoldChain& c = sgn > 0 ? cp : cm;
-          ManifoldVertex& v = c.v[j];
           const double du = k == 0 ? sgn * h : 0.0, dv = k == 1 ? sgn * h : 0.0;
-          if (v.sphere) {
-            const DVec3 q = glm::normalize(v.p - v.center + v.e1 * du + v.e2 * dv);
-            v.p = v.center + q * v.radius;
-            v.n = q * v.normal_sign;
-          } else {
-            v.p = v.p + v.e1 * du + v.e2 * dv;
-            v.n = glm::normalize(v.nb + v.dn1 * du + v.dn2 * dv) * v.normal_sign;
-          }
+          const ManifoldVertex m = ManifoldWalk::moved(c.v[j], du, dv);
+          c.v[j].p = m.p;
+          c.v[j].n = m.n;
         }
         // keep the frame reference tangent fixed: it is a constant of the constraint
         if (!walk.constraints(cp, Cp) || !walk.constraints(cm, Cm)) continue;

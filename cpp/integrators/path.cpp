@@ -87,7 +87,7 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
         tau.clear();
         chain_ok = true;
       } else if (chain_ok) {
-        if (chains_->is_chain_shape(si.shape) && !bs.null && !ctx.perturbed)
+        if (chains_->is_chain_shape(si.shape) && !bs.null)
           tau.push_back(bs.transmission ? 'T' : 'R');
         else
           chain_ok = false;

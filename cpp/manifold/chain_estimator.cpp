@@ -19,6 +19,9 @@ bool specular_node(const BSDFSet& b, int id) {
   const BSDF& n = b.nodes[size_t(id)];
   if (n.type == BSDFType::Dielectric || n.type == BSDFType::Conductor) return true;
   if (n.type == BSDFType::TwoSided) return specular_node(b, n.front) && specular_node(b, n.back);
+  if (n.type == BSDFType::NormalMap)  // one level of tangent-space normal map over a smooth interface
+    return b.nodes[size_t(n.nested)].type == BSDFType::Dielectric ||
+           b.nodes[size_t(n.nested)].type == BSDFType::Conductor;
   return false;
 }
 }  // namespace

@@ -44,18 +44,58 @@ V3<T> lift(const DVec3& v) {
   return V3<T>(T(v.x), T(v.y), T(v.z));
 }
 
+// Bilinear texture lookup (Texture::eval's arithmetic) over a scalar type, so
+// the derivative of a normal map with respect to the chart is exact.
+template <typename T>
+void texture_eval(const Texture& tex, const T& u, const T& v, T out[3]) {
+  const Mat3& m = tex.to_uv;  // column-major: m[col][row]
+  const T qu = u * double(m[0][0]) + v * double(m[1][0]) + double(m[2][0]);
+  const T qv = u * double(m[0][1]) + v * double(m[1][1]) + double(m[2][1]);
+  const T x = qu * double(tex.width) - 0.5, y = qv * double(tex.height) - 0.5;
+  const double x0 = std::floor(value(x)), y0 = std::floor(value(y));
+  const T ax = x - x0, ay = y - y0;
+  const Color c00 = tex.texel(int(x0), int(y0)), c10 = tex.texel(int(x0) + 1, int(y0));
+  const Color c01 = tex.texel(int(x0), int(y0) + 1), c11 = tex.texel(int(x0) + 1, int(y0) + 1);
+  for (int k = 0; k < 3; ++k) {
+    out[k] = (1.0 - ax) * (1.0 - ay) * double(c00[k]) + ax * (1.0 - ay) * double(c10[k]) +
+             (1.0 - ax) * ay * double(c01[k]) + ax * ay * double(c11[k]);
+  }
+}
+
 // Chart of a specular vertex: (du, dv) -> position and unit shading normal.
 template <typename T>
 void chart(const ManifoldVertex& v, const T& du, const T& dv, V3<T>& p, V3<T>& n) {
+  V3<T> dpdu;
+  T uu(0.0), vv(0.0);
   if (v.sphere) {
     const V3<T> q = lift<T>(v.p - v.center) + lift<T>(v.e1) * du + lift<T>(v.e2) * dv;
     const V3<T> qn = normalize(q);
     p = lift<T>(v.center) + qn * v.radius;
     n = qn * v.normal_sign;
+    if (v.nmap) {
+      // Mitsuba 3's sphere parameterisation (scene.cpp): u = phi / 2pi, v = theta / pi
+      dpdu = V3<T>(-qn.y, qn.x, T(0.0));
+      uu = atan2(qn.y, qn.x) * (1.0 / (2.0 * kPiD));
+      if (value(uu) < 0.0) uu = uu + 1.0;
+      vv = acos(qn.z) * (1.0 / kPiD);
+    }
   } else {
     p = lift<T>(v.p) + lift<T>(v.e1) * du + lift<T>(v.e2) * dv;
     const V3<T> N = lift<T>(v.nb) + lift<T>(v.dn1) * du + lift<T>(v.dn2) * dv;
     n = normalize(N) * v.normal_sign;
+    if (v.nmap) {
+      dpdu = lift<T>(v.dpdu);
+      uu = v.uv0.x + du * v.duv1.x + dv * v.duv2.x;
+      vv = v.uv0.y + du * v.duv1.y + dv * v.duv2.y;
+    }
+  }
+  if (v.nmap) {
+    // Tangent-space normal in the shading frame (s along dp/du), as BSDFSet::resolve.
+    const V3<T> s = normalize(dpdu - n * dot(n, dpdu));
+    const V3<T> t = cross(n, s);
+    T c[3];
+    texture_eval<T>(*v.nmap, uu, vv, c);
+    n = normalize(s * (c[0] * 2.0 - 1.0) + t * (c[1] * 2.0 - 1.0) + n * (c[2] * 2.0 - 1.0));
   }
 }
 
@@ -138,12 +178,36 @@ inline void mul2(const double* a, const double* b, double* c, int m) {
 
 }  // namespace
 
+ManifoldVertex ManifoldWalk::moved(const ManifoldVertex& v, double du, double dv) {
+  V3<double> p, n;
+  chart<double>(v, du, dv, p, n);
+  ManifoldVertex r = v;
+  r.p = DVec3(p.x, p.y, p.z);
+  r.n = DVec3(n.x, n.y, n.z);
+  return r;
+}
+
 bool ManifoldWalk::make_vertex(const SurfaceInteraction& si, bool reflect, ManifoldVertex& v) const {
   if (!si.valid) return false;
   const Shape& s = scene_.shapes[size_t(si.shape)];
   const BSDFContext ctx = scene_.bsdfs.resolve(s.bsdf, si);
-  if (!ctx.leaf || ctx.perturbed) return false;  // normal-mapped chains: not yet supported
+  if (!ctx.leaf) return false;
   const BSDF& b = *ctx.leaf;
+  // The normal map on the way to the leaf, if any (resolve applied it to ctx.frame).
+  const Texture* nmap = nullptr;
+  for (int id = s.bsdf, guard = 0; id >= 0 && guard < 16; ++guard) {
+    const BSDF& node = scene_.bsdfs.nodes[size_t(id)];
+    if (node.type == BSDFType::NormalMap) {
+      if (nmap) return false;  // nested normal maps: not supported
+      nmap = &scene_.bsdfs.textures[size_t(node.normalmap)];
+      id = node.nested;
+    } else if (node.type == BSDFType::TwoSided) {
+      id = glm::dot(si.wi, si.sh.n) < 0.f ? node.back : node.front;
+    } else {
+      break;
+    }
+  }
+  if (nmap && nmap->kind != Texture::Kind::Bitmap) nmap = nullptr;
   // Smooth (delta) interfaces only: the path tracer samples rough ones as glossy,
   // and chain ownership must match what it samples as specular.
   const bool is_dielectric = b.type == BSDFType::Dielectric;
@@ -158,6 +222,7 @@ bool ManifoldWalk::make_vertex(const SurfaceInteraction& si, bool reflect, Manif
   v.p = to_d(si.p);
   v.ng = to_d(si.ng);
   v.uv = si.uv;
+  v.nmap = nmap;
   v.normal_sign = s.flip_normals ? -1.0 : 1.0;
   if (s.kind == Shape::Kind::Sphere) {
     v.sphere = true;
@@ -170,6 +235,11 @@ bool ManifoldWalk::make_vertex(const SurfaceInteraction& si, bool reflect, Manif
     v.e1 = t1 * v.radius;
     v.e2 = t2 * v.radius;
     v.n = q * v.normal_sign;
+    if (v.nmap) {
+      V3<double> pp, nn;
+      chart<double>(v, 0.0, 0.0, pp, nn);
+      v.n = DVec3(nn.x, nn.y, nn.z);
+    }
   } else {
     const glm::uvec3 tri = s.indices[size_t(si.prim)];
     const DVec3 p0 = to_d(s.positions[tri.x]), p1 = to_d(s.positions[tri.y]), p2 = to_d(s.positions[tri.z]);
@@ -186,6 +256,26 @@ bool ManifoldWalk::make_vertex(const SurfaceInteraction& si, bool reflect, Manif
       v.nb = glm::normalize(glm::cross(v.e1, v.e2));
     }
     v.n = glm::normalize(v.nb) * v.normal_sign;
+    if (v.nmap) {
+      // uv chart and dp/du exactly as make_interaction computes them
+      v.dpdu = v.e1;
+      if (!s.uvs.empty()) {
+        const glm::dvec2 u0(s.uvs[tri.x].x, s.uvs[tri.x].y), u1(s.uvs[tri.y].x, s.uvs[tri.y].y),
+            u2(s.uvs[tri.z].x, s.uvs[tri.z].y);
+        v.duv1 = u1 - u0;
+        v.duv2 = u2 - u0;
+        v.uv0 = u0 + b1 * v.duv1 + b2 * v.duv2;
+        const double det = v.duv1.x * v.duv2.y - v.duv1.y * v.duv2.x;
+        if (std::abs(det) > 1e-12) v.dpdu = (v.duv2.y * v.e1 - v.duv1.y * v.e2) / det;
+      } else {
+        v.uv0 = glm::dvec2(b1, b2);
+        v.duv1 = glm::dvec2(1.0, 0.0);
+        v.duv2 = glm::dvec2(0.0, 1.0);
+      }
+      V3<double> pp, nn;
+      chart<double>(v, 0.0, 0.0, pp, nn);
+      v.n = DVec3(nn.x, nn.y, nn.z);
+    }
   }
   return true;
 }
@@ -212,6 +302,11 @@ bool ManifoldWalk::make_vertex_refined(const SurfaceInteraction& si_in, const DV
     v.e1 = t1v * v.radius;
     v.e2 = t2v * v.radius;
     v.n = q * v.normal_sign;
+    if (v.nmap) {
+      V3<double> pp, nn;
+      chart<double>(v, 0.0, 0.0, pp, nn);
+      v.n = DVec3(nn.x, nn.y, nn.z);
+    }
     return true;
   }
   if (!make_vertex(si, reflect, v)) return false;
@@ -232,6 +327,13 @@ bool ManifoldWalk::make_vertex_refined(const SurfaceInteraction& si_in, const DV
     const DVec3 n0 = to_d(s.normals[tri.x]);
     v.nb = n0 + b1 * v.dn1 + b2 * v.dn2;
     v.n = glm::normalize(v.nb) * v.normal_sign;
+  }
+  if (v.nmap) {
+    v.uv0 = s.uvs.empty() ? glm::dvec2(b1, b2)
+                          : glm::dvec2(s.uvs[tri.x].x, s.uvs[tri.x].y) + b1 * v.duv1 + b2 * v.duv2;
+    V3<double> pp, nn;
+    chart<double>(v, 0.0, 0.0, pp, nn);
+    v.n = DVec3(nn.x, nn.y, nn.z);
   }
   return true;
 }
@@ -464,7 +566,18 @@ WalkResult ManifoldWalk::solve(ManifoldChain& chain) const {
     const double bs = glm::dot(xn - chain.v[i].p, chain.v[i].n);
     const bool same = a * b > 0.0 && as * bs > 0.0;
     const bool opposite = a * b < 0.0 && as * bs < 0.0;
-    if ((chain.v[i].reflect && !same) || (!chain.v[i].reflect && !opposite)) {
+    bool ok = chain.v[i].reflect ? same : opposite;
+    if (chain.v[i].nmap) {
+      // the path tracer rejects a direction on different sides of the perturbed
+      // and the unperturbed normal (BSDFSet::sample); so must the chain
+      V3<double> pp, nb;
+      ManifoldVertex base = chain.v[i];
+      base.nmap = nullptr;
+      chart<double>(base, 0.0, 0.0, pp, nb);
+      const DVec3 nbase(nb.x, nb.y, nb.z);
+      ok = ok && glm::dot(xn - chain.v[i].p, nbase) * bs > 0.0;
+    }
+    if (!ok) {
       res.failure = WalkFailure::WrongHemisphere;
       return res;
     }

@@ -65,6 +65,11 @@ struct ManifoldVertex {
   DVec3 center{0.0};
   double radius = 0.0;
   double normal_sign = 1.0;  // -1 with flip_normals
+  // normal map: the shading normal is perturbed by a tangent-space texture
+  // (as BSDFSet::resolve does); uv and dp/du follow the chart.
+  const Texture* nmap = nullptr;
+  glm::dvec2 uv0{0.0}, duv1{0.0}, duv2{0.0};  // mesh: uv(u,v) = uv0 + u duv1 + v duv2
+  DVec3 dpdu{0.0};                            // mesh: constant per triangle
   DVec3 n{0.0};              // shading normal at p
   DVec3 ng{0.0};             // geometric normal at p
   Vec2 uv{0.f};
@@ -122,6 +127,8 @@ class ManifoldWalk {
                          const std::vector<double>& D, std::vector<double>& R, int m) const;
 
   const WalkConfig& config() const { return cfg_; }
+  // The vertex moved by (du, dv) in its chart (position and shading normal); for tests.
+  static ManifoldVertex moved(const ManifoldVertex& v, double du, double dv);
 
  private:
   bool reproject(const ManifoldChain& from, const std::vector<DVec3>& targets, ManifoldChain& out,
