@@ -41,3 +41,23 @@ def test_published_scene_renders(path):
     assert np.isfinite(img.rgb).all()
     assert img.stats["rejected_samples"] <= img.stats["samples"] * 1e-3
     assert img.rgb.max() > 0.0, "a published scene rendered black"
+
+
+SMS_FILES = ["sms/Figure_4_5_RingSolutions/ring.xml", "sms/Figure_8_Constraints/sphere.xml",
+             "sms/Figure_14_15_MainComparison/sphere_sms.xml"]
+
+
+@pytest.mark.skipif(not FILES, reason="shared/published-scenes not present")
+@pytest.mark.parametrize("rel", SMS_FILES)
+def test_published_sms_scenes_render_with_sms(rel):
+    """The SMS paper's scenes render with their own integrator (path_sms_ss ->
+    sms): chains are found, nothing is rejected."""
+    sc = mpg.load_file(PUBLISHED / rel, substitute_missing_textures=True)
+    cam = sc.desc.camera
+    s = 48 / max(cam.width, cam.height)
+    cam.width, cam.height = max(1, round(cam.width * s)), max(1, round(cam.height * s))
+    cam.crop = (0, 0, cam.width, cam.height)
+    img = mpg.render(sc, spp=4, progress=False)
+    assert img.stats["integrator"] == "sms"
+    assert img.stats["chain_contributions"] > 0
+    assert np.isfinite(img.rgb).all() and img.stats["rejected_samples"] == 0
