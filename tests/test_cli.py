@@ -85,3 +85,14 @@ def test_ctrl_c_writes_what_it_has(tmp_path):
     assert np.isfinite(rgb).all()
     st = json.loads((tmp_path / "s.json").read_text())
     assert st["interrupted"] is True and st["spp"] >= 1
+
+
+def test_integrator_parameters_on_the_command_line(tmp_path):
+    st = tmp_path / "s.json"
+    r = run(["--integrator", "sms", "-P", "tau=TT", "-P", "max_depth=6", "--spp", "1",
+             "-o", str(tmp_path / "c.exr"), "--stats", str(st), *SMALL])
+    assert r.returncode == 0, r.stderr
+    s = json.loads(st.read_text())
+    assert s["integrator"] == "sms" and s["integrator_params"]["tau"] == "TT"
+    r = run(["--integrator", "sms", "-P", "tau=XY", "--spp", "1", "-o", str(tmp_path / "d.exr"), *SMALL])
+    assert r.returncode == 1 and "tau" in r.stderr

@@ -31,7 +31,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="output EXR (default: out/<scene name>.exr)")
     p.add_argument("-D", dest="defines", action="append", type=_parse_define, default=[],
                    metavar="NAME=VALUE", help="override a <default> value of the scene")
-    p.add_argument("--integrator", help="integrator name (default: the scene's)")
+    p.add_argument("--integrator", help="integrator name: path, sms, sms_star (default: the scene's)")
+    p.add_argument("-P", dest="iparams", action="append", type=_parse_define, default=[],
+                   metavar="NAME=VALUE",
+                   help="integrator parameter, e.g. -P tau=TT -P max_depth=8 (repeatable)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--spp", type=int, help="samples per pixel (default: the scene's sampler)")
     g.add_argument("--time", type=float, help="time budget in seconds")
@@ -93,7 +96,14 @@ def _run(args) -> int:
               f"{cam.crop[2]}x{cam.crop[3]} pixels", file=sys.stderr)
     old = signal.signal(signal.SIGTERM, _raise_interrupt)
     try:
-        img = mpg.render(scene, integrator=args.integrator, spp=args.spp, time=args.time,
+        integrator = args.integrator
+        if args.iparams:
+            base = args.integrator or scene.desc.integrator.type
+            integrator = {"type": base}
+            if base == scene.desc.integrator.type:
+                integrator.update(scene.desc.integrator.params)
+            integrator.update(dict(args.iparams))
+        img = mpg.render(scene, integrator=integrator, spp=args.spp, time=args.time,
                          seed=args.seed, threads=args.threads,
                          progress=False if args.quiet else None)
     finally:

@@ -88,7 +88,8 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
         if k in core_params:
             core_params[k] = int(core_params[k])
     if "hide_emitters" in core_params:
-        core_params["hide_emitters"] = bool(core_params["hide_emitters"])
+        v = core_params["hide_emitters"]
+        core_params["hide_emitters"] = v.lower() == "true" if isinstance(v, str) else bool(v)
     return name, core_params, warnings
 
 
