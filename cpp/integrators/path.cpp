@@ -51,10 +51,14 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     const BSDFContext ctx = scene.bsdfs.resolve(shape.bsdf, si);
     if (!ctx.leaf) break;
 
+    // A chain vertex (smooth, or glossy below the threshold, when a chain
+    // estimator runs) is not a separator: no NEE there, its light is the chains'.
+    const bool chain_vertex = chains_ && chains_->is_chain_bsdf(*ctx.leaf) && chains_->is_chain_shape(si.shape);
+    const bool separator = !ctx.leaf->is_delta() && !chain_vertex;
     // Next-event estimation (not for delta BSDFs).
     const float u_sel = rng.next_float();
     const Vec2 u_em(rng.next_float(), rng.next_float());
-    if (!ctx.leaf->is_delta()) {
+    if (separator) {
       const EmitterSample es = scene.sample_emitter(si.p, u_sel, u_em);
       if (es.pdf > 0.f && !is_black(es.value)) {
         const Color f = scene.bsdfs.eval(ctx, si.wi, es.wi);
@@ -71,7 +75,7 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     }
 
     // Light through specular chains, estimated at the separator.
-    if (chains_ && !ctx.leaf->is_delta()) L += beta * chains_->estimate(si, ctx, depth, max_depth, rng, st);
+    if (chains_ && separator) L += beta * chains_->estimate(si, ctx, depth, max_depth, rng, st);
 
     // BSDF sampling.
     const float u1 = rng.next_float();
@@ -82,7 +86,7 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     beta *= bs.weight;
     eta *= bs.eta;
     if (chains_) {
-      if (!ctx.leaf->is_delta()) {
+      if (separator) {
         sep_depth = depth;
         tau.clear();
         chain_ok = true;
@@ -95,7 +99,7 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     }
     prev_p = si.p;
     prev_pdf = bs.pdf;
-    prev_delta = bs.delta;
+    prev_delta = bs.delta || chain_vertex;
 
     const Vec3 org = offset_ray_origin(si.p, si.ng, wo);
     d = wo;

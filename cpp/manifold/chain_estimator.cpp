@@ -13,12 +13,16 @@ namespace {
 DVec3 to_d(const Vec3& v) { return DVec3(v.x, v.y, v.z); }
 Vec3 to_f(const DVec3& v) { return Vec3(float(v.x), float(v.y), float(v.z)); }
 
-// A BSDF node that the walk treats as one smooth specular interface.
-bool specular_node(const BSDFSet& b, int id) {
+// A BSDF node that the walk treats as one specular (or glossy chain) interface.
+bool specular_node(const BSDFSet& b, int id, float glossy_threshold) {
   if (id < 0) return false;
   const BSDF& n = b.nodes[size_t(id)];
   if (n.type == BSDFType::Dielectric || n.type == BSDFType::Conductor) return true;
-  if (n.type == BSDFType::TwoSided) return specular_node(b, n.front) && specular_node(b, n.back);
+  if ((n.type == BSDFType::RoughDielectric || n.type == BSDFType::RoughConductor) &&
+      std::max(n.mf.ax, n.mf.ay) < glossy_threshold)
+    return true;
+  if (n.type == BSDFType::TwoSided)
+    return specular_node(b, n.front, glossy_threshold) && specular_node(b, n.back, glossy_threshold);
   if (n.type == BSDFType::NormalMap)  // one level of tangent-space normal map over a smooth interface
     return b.nodes[size_t(n.nested)].type == BSDFType::Dielectric ||
            b.nodes[size_t(n.nested)].type == BSDFType::Conductor;
@@ -31,7 +35,7 @@ ChainEstimator::ChainEstimator(const Scene& scene, ChainParams p)
   specular_shape_.assign(scene.shapes.size(), 0);
   std::vector<float> areas;
   for (size_t i = 0; i < scene.shapes.size(); ++i) {
-    if (specular_node(scene.bsdfs, scene.shapes[i].bsdf) && scene.shapes[i].emitter < 0) {
+    if (specular_node(scene.bsdfs, scene.shapes[i].bsdf, p.walk.glossy_threshold) && scene.shapes[i].emitter < 0) {
       specular_shape_[i] = 1;
       seed_shapes_.push_back(int(i));
       areas.push_back(scene.shapes[i].area);
@@ -114,7 +118,8 @@ bool ChainEstimator::sample_light(PCG32& rng, LightPoint& lp) const {
 }
 
 bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
-                           PCG32& rng, ManifoldChain& chain, std::string& tau, Stats& st) const {
+                           const std::vector<Vec2>& offsets, PCG32& rng, ManifoldChain& chain,
+                           std::string& tau, Stats& st) const {
   // x_1 uniform by area on the specular shapes; the seed direction aims at it.
   float u = rng.next_float();
   const size_t k = seed_dist_.sample(u);
@@ -127,7 +132,7 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
   chain.nL = lp.n;
   if (p_.mode == ChainParams::Mode::Sms) {
     tau = p_.tau;
-    if (!walk_.trace_seed(xD, nD, dir, tau, chain, why)) {
+    if (!walk_.trace_seed(xD, nD, dir, tau, chain, why, &offsets)) {
       st.walk_failures[size_t(why)]++;
       return false;
     }
@@ -146,7 +151,7 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
         return false;
       }
       ManifoldVertex v;
-      if (!walk_.make_vertex(si, true, v)) {
+      if (!walk_.make_vertex(si, true, v, &offsets[size_t(i)])) {
         st.walk_failures[size_t(WalkFailure::NotSpecular)]++;
         return false;
       }
@@ -206,6 +211,36 @@ Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau) cons
     if (!ctx.leaf) return Color(0.f);
     const float ci = glm::dot(si.wi, ctx.frame.n);
     const BSDF& b = *ctx.leaf;
+    if (v.mf) {
+      // Glossy vertex as a smooth one with normal m, weighted by the rest of the
+      // microfacet BSDF over the offset's density D(m) cos(theta_m):
+      // f |cos_o| d omega_o = lobe(w_i . m) G |w_i . m| / |cos_i| D(m) d omega_m
+      // (Walter et al. 2007, Eqs. 20-21 with their Jacobians 14 and 17).
+      const DVec3 xn = i + 1 == n ? c.xL : c.v[i + 1].p;
+      const Vec3 wi = si.wi, wo = to_f(glm::normalize(xn - v.p));
+      const Vec3 m = to_f(v.n);
+      // the frame the offset was drawn in (s along e1), with the shading normal
+      ManifoldVertex base = v;
+      base.mf = nullptr;
+      const ManifoldVertex b0 = ManifoldWalk::moved(base, 0.0, 0.0);
+      const Frame fr = Frame::from_normal_tangent(to_f(b0.n), to_f(v.e1));
+      const Vec3 wil = fr.to_local(wi), wol = fr.to_local(wo), ml = fr.to_local(m);
+      const float cos_i = std::abs(wil.z), cos_m = ml.z;
+      if (!(cos_i > 0.f) || !(cos_m > 0.f)) return Color(0.f);
+      const float wim = glm::dot(wi, m);
+      const float G = v.mf->G(wil, wol, ml);
+      Color lobe;
+      if (b.type == BSDFType::RoughConductor) {
+        if (ci <= 0.f || tau[i] != 'R') return Color(0.f);
+        lobe = scene_.bsdfs.tex(b.specular_reflectance, v.uv) * fresnel_conductor(std::abs(wim), b.eta_c, b.k_c);
+      } else {
+        const DielectricFresnel f = fresnel_dielectric(wim, b.eta);
+        lobe = tau[i] == 'R' ? scene_.bsdfs.tex(b.specular_reflectance, v.uv) * f.F
+                             : scene_.bsdfs.tex(b.specular_transmittance, v.uv) * ((1.f - f.F) * f.eta_ti * f.eta_ti);
+      }
+      k *= lobe * (G * std::abs(wim) / (cos_i * cos_m));
+      continue;
+    }
     if (b.type == BSDFType::Conductor) {
       if (ci <= 0.f || tau[i] != 'R') return Color(0.f);
       k *= scene_.bsdfs.tex(b.specular_reflectance, v.uv) * fresnel_conductor(ci, b.eta_c, b.k_c);
@@ -231,11 +266,15 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
   LightPoint lp;
   const int n = sample_n(rng.next_float(), nmax);
   const DVec3 xD = to_d(si.p), nD = to_d(si.ng);
+  // Offset normals of glossy vertices: drawn once, shared by all trials (the
+  // admissible set is finite given them; method-notes Sec. 7).
+  std::vector<Vec2> offsets(static_cast<size_t>(n));
+  for (auto& o : offsets) o = Vec2(rng.next_float(), rng.next_float());
   ManifoldChain chain;
   std::string tau;
   do {
     if (!sample_light(rng, lp)) break;
-    if (!trial(xD, nD, lp, n, rng, chain, tau, st)) break;
+    if (!trial(xD, nD, lp, n, offsets, rng, chain, tau, st)) break;
     st.chain_converged++;
     const ManifoldVertex& last = chain.v.back();
     // One-sided area light; visibility of the last segment (the others are first hits).
@@ -271,7 +310,7 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     const int K = bernoulli_count(
         [&] {
           st.bernoulli_trials++;
-          return trial(xD, nD, lp, n, rng, other, tau2, st) && tau2 == tau_star &&
+          return trial(xD, nD, lp, n, offsets, rng, other, tau2, st) && tau2 == tau_star &&
                  glm::length(glm::normalize(other.v[0].p - xD) - w_star) < p_.uniqueness_threshold;
         },
         p_.max_trials, capped);

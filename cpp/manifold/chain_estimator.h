@@ -66,6 +66,13 @@ class ChainEstimator {
   bool owns(uint32_t depth, uint32_t max_depth, const std::string& tau) const;
   // Is shape `s` a surface the walk accepts as a specular vertex?
   bool is_chain_shape(int s) const { return specular_shape_[size_t(s)] != 0; }
+  // Is this resolved BSDF a chain vertex (smooth, or glossy below the
+  // threshold)? Such vertices are not separators for the path tracer.
+  bool is_chain_bsdf(const BSDF& b) const {
+    if (b.type == BSDFType::Dielectric || b.type == BSDFType::Conductor) return true;
+    return (b.type == BSDFType::RoughDielectric || b.type == BSDFType::RoughConductor) &&
+           std::max(b.mf.ax, b.mf.ay) < p_.walk.glossy_threshold;
+  }
 
   // Contribution at x_D (already multiplied by f_s * |cos|); `wi` toward the camera.
   Color estimate(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
@@ -84,8 +91,9 @@ class ChainEstimator {
   double pmf_n(int n, int nmax) const;
   int sample_n(float u, int nmax) const;
   // One trial: seed + walk. Fills chain and tau on success.
-  bool trial(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n, PCG32& rng,
-             ManifoldChain& chain, std::string& tau, Stats& st) const;
+  bool trial(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
+             const std::vector<Vec2>& offsets, PCG32& rng, ManifoldChain& chain, std::string& tau,
+             Stats& st) const;
   Color kappa(const ManifoldChain& chain, const std::string& tau) const;
 
   const Scene& scene_;

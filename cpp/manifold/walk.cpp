@@ -89,6 +89,13 @@ void chart(const ManifoldVertex& v, const T& du, const T& dv, V3<T>& p, V3<T>& n
       vv = v.uv0.y + du * v.duv1.y + dv * v.duv2.y;
     }
   }
+  if (v.mf) {
+    // Offset microfacet normal, fixed in a smooth frame of the shading normal.
+    const V3<T> e = lift<T>(v.e1);
+    const V3<T> s = normalize(e - n * dot(n, e));
+    const V3<T> t = cross(n, s);
+    n = normalize(s * v.m_local.x + t * v.m_local.y + n * v.m_local.z);
+  }
   if (v.nmap) {
     // Tangent-space normal in the shading frame (s along dp/du), as BSDFSet::resolve.
     const V3<T> s = normalize(dpdu - n * dot(n, dpdu));
@@ -187,7 +194,8 @@ ManifoldVertex ManifoldWalk::moved(const ManifoldVertex& v, double du, double dv
   return r;
 }
 
-bool ManifoldWalk::make_vertex(const SurfaceInteraction& si, bool reflect, ManifoldVertex& v) const {
+bool ManifoldWalk::make_vertex(const SurfaceInteraction& si, bool reflect, ManifoldVertex& v,
+                               const Vec2* offset_u) const {
   if (!si.valid) return false;
   const Shape& s = scene_.shapes[size_t(si.shape)];
   const BSDFContext ctx = scene_.bsdfs.resolve(s.bsdf, si);
@@ -210,8 +218,11 @@ bool ManifoldWalk::make_vertex(const SurfaceInteraction& si, bool reflect, Manif
   if (nmap && nmap->kind != Texture::Kind::Bitmap) nmap = nullptr;
   // Smooth (delta) interfaces only: the path tracer samples rough ones as glossy,
   // and chain ownership must match what it samples as specular.
-  const bool is_dielectric = b.type == BSDFType::Dielectric;
-  const bool is_conductor = b.type == BSDFType::Conductor;
+  const bool glossy = (b.type == BSDFType::RoughDielectric || b.type == BSDFType::RoughConductor) &&
+                      std::max(b.mf.ax, b.mf.ay) < cfg_.glossy_threshold;
+  if (glossy && (!offset_u || nmap)) return false;  // offsets needed; not combined with normal maps
+  const bool is_dielectric = b.type == BSDFType::Dielectric || (glossy && b.type == BSDFType::RoughDielectric);
+  const bool is_conductor = b.type == BSDFType::Conductor || (glossy && b.type == BSDFType::RoughConductor);
   if (!(is_dielectric || (is_conductor && reflect))) return false;
   v = ManifoldVertex();
   v.shape = si.shape;
@@ -223,6 +234,13 @@ bool ManifoldWalk::make_vertex(const SurfaceInteraction& si, bool reflect, Manif
   v.ng = to_d(si.ng);
   v.uv = si.uv;
   v.nmap = nmap;
+  if (glossy) {
+    v.mf = &b.mf;
+    v.offset_u = *offset_u;
+    float pdf;
+    const Vec3 m = b.mf.sample_dcos(*offset_u, pdf);
+    v.m_local = glm::dvec3(m.x, m.y, m.z);
+  }
   v.normal_sign = s.flip_normals ? -1.0 : 1.0;
   if (s.kind == Shape::Kind::Sphere) {
     v.sphere = true;
@@ -235,7 +253,7 @@ bool ManifoldWalk::make_vertex(const SurfaceInteraction& si, bool reflect, Manif
     v.e1 = t1 * v.radius;
     v.e2 = t2 * v.radius;
     v.n = q * v.normal_sign;
-    if (v.nmap) {
+    if (v.nmap || v.mf) {
       V3<double> pp, nn;
       chart<double>(v, 0.0, 0.0, pp, nn);
       v.n = DVec3(nn.x, nn.y, nn.z);
@@ -256,6 +274,11 @@ bool ManifoldWalk::make_vertex(const SurfaceInteraction& si, bool reflect, Manif
       v.nb = glm::normalize(glm::cross(v.e1, v.e2));
     }
     v.n = glm::normalize(v.nb) * v.normal_sign;
+    if (v.mf) {
+      V3<double> pp, nn;
+      chart<double>(v, 0.0, 0.0, pp, nn);
+      v.n = DVec3(nn.x, nn.y, nn.z);
+    }
     if (v.nmap) {
       // uv chart and dp/du exactly as make_interaction computes them
       v.dpdu = v.e1;
@@ -281,13 +304,14 @@ bool ManifoldWalk::make_vertex(const SurfaceInteraction& si, bool reflect, Manif
 }
 
 bool ManifoldWalk::make_vertex_refined(const SurfaceInteraction& si_in, const DVec3& o,
-                                       const DVec3& d, bool reflect, ManifoldVertex& v) const {
+                                       const DVec3& d, bool reflect, ManifoldVertex& v,
+                                       const Vec2* offset_u) const {
   if (!si_in.valid) return false;
   SurfaceInteraction si = si_in;
   const Shape& s = scene_.shapes[size_t(si.shape)];
   if (s.kind == Shape::Kind::Sphere) {
     // Ray-sphere in double; keep the root nearest to Embree's distance.
-    if (!make_vertex(si, reflect, v)) return false;
+    if (!make_vertex(si, reflect, v, offset_u)) return false;
     const DVec3 oc = o - v.center;
     const double b = glm::dot(oc, d), cc = glm::dot(oc, oc) - v.radius * v.radius;
     const double disc = b * b - cc;
@@ -302,14 +326,14 @@ bool ManifoldWalk::make_vertex_refined(const SurfaceInteraction& si_in, const DV
     v.e1 = t1v * v.radius;
     v.e2 = t2v * v.radius;
     v.n = q * v.normal_sign;
-    if (v.nmap) {
+    if (v.nmap || v.mf) {
       V3<double> pp, nn;
       chart<double>(v, 0.0, 0.0, pp, nn);
       v.n = DVec3(nn.x, nn.y, nn.z);
     }
     return true;
   }
-  if (!make_vertex(si, reflect, v)) return false;
+  if (!make_vertex(si, reflect, v, offset_u)) return false;
   // Ray-plane of the hit triangle in double, barycentrics by projection.
   const glm::uvec3 tri = s.indices[size_t(si.prim)];
   const DVec3 p0 = to_d(s.positions[tri.x]);
@@ -328,9 +352,10 @@ bool ManifoldWalk::make_vertex_refined(const SurfaceInteraction& si_in, const DV
     v.nb = n0 + b1 * v.dn1 + b2 * v.dn2;
     v.n = glm::normalize(v.nb) * v.normal_sign;
   }
-  if (v.nmap) {
-    v.uv0 = s.uvs.empty() ? glm::dvec2(b1, b2)
-                          : glm::dvec2(s.uvs[tri.x].x, s.uvs[tri.x].y) + b1 * v.duv1 + b2 * v.duv2;
+  if (v.nmap || v.mf) {
+    if (v.nmap)
+      v.uv0 = s.uvs.empty() ? glm::dvec2(b1, b2)
+                            : glm::dvec2(s.uvs[tri.x].x, s.uvs[tri.x].y) + b1 * v.duv1 + b2 * v.duv2;
     V3<double> pp, nn;
     chart<double>(v, 0.0, 0.0, pp, nn);
     v.n = DVec3(nn.x, nn.y, nn.z);
@@ -471,7 +496,8 @@ bool ManifoldWalk::reproject(const ManifoldChain& from, const std::vector<DVec3>
       why = WalkFailure::LeftSurface;
       return false;
     }
-    if (!make_vertex_refined(si, to_d(o), d, from.v[i].reflect, out.v[i])) {
+    if (!make_vertex_refined(si, to_d(o), d, from.v[i].reflect, out.v[i],
+                             from.v[i].mf ? &from.v[i].offset_u : nullptr)) {
       why = WalkFailure::NotSpecular;
       return false;
     }
@@ -567,15 +593,20 @@ WalkResult ManifoldWalk::solve(ManifoldChain& chain) const {
     const bool same = a * b > 0.0 && as * bs > 0.0;
     const bool opposite = a * b < 0.0 && as * bs < 0.0;
     bool ok = chain.v[i].reflect ? same : opposite;
-    if (chain.v[i].nmap) {
-      // the path tracer rejects a direction on different sides of the perturbed
-      // and the unperturbed normal (BSDFSet::sample); so must the chain
+    if (chain.v[i].nmap || chain.v[i].mf) {
+      // Sides against the unperturbed shading normal too: the path tracer
+      // rejects a direction on different sides of the perturbed and the
+      // unperturbed normal (BSDFSet::sample), and a rough interface reflects
+      // or transmits relative to its macro-surface.
       V3<double> pp, nb;
       ManifoldVertex base = chain.v[i];
       base.nmap = nullptr;
+      base.mf = nullptr;
       chart<double>(base, 0.0, 0.0, pp, nb);
       const DVec3 nbase(nb.x, nb.y, nb.z);
-      ok = ok && glm::dot(xn - chain.v[i].p, nbase) * bs > 0.0;
+      const double ab = glm::dot(xp - chain.v[i].p, nbase), bb = glm::dot(xn - chain.v[i].p, nbase);
+      ok = ok && (chain.v[i].reflect ? ab * bb > 0.0 : ab * bb < 0.0);
+      if (chain.v[i].nmap) ok = ok && bb * bs > 0.0;
     }
     if (!ok) {
       res.failure = WalkFailure::WrongHemisphere;
@@ -638,7 +669,8 @@ bool ManifoldWalk::geometry_point(const ManifoldChain& c, double& G) const {
 }
 
 bool ManifoldWalk::trace_seed(const DVec3& xD, const DVec3& nD, const DVec3& dir,
-                              const std::string& tau, ManifoldChain& chain, WalkFailure& why) const {
+                              const std::string& tau, ManifoldChain& chain, WalkFailure& why,
+                              const std::vector<Vec2>* offsets) const {
   chain.xD = xD;
   chain.nD = nD;
   chain.v.clear();
@@ -651,7 +683,9 @@ bool ManifoldWalk::trace_seed(const DVec3& xD, const DVec3& nD, const DVec3& dir
       return false;
     }
     ManifoldVertex v;
-    if (!make_vertex(si, letter == 'R', v)) {
+    const size_t idx = chain.v.size();
+    const Vec2* off = offsets && idx < offsets->size() ? &(*offsets)[idx] : nullptr;
+    if (!make_vertex(si, letter == 'R', v, off)) {
       why = WalkFailure::NotSpecular;
       return false;
     }

@@ -48,6 +48,7 @@ struct WalkConfig {
   double min_step = 1.0 / 1024.0;
   double min_segment = 1e-6;   // relative to the scene size
   double min_det = 1e-14;      // |det| of a 2x2 pivot below this is singular
+  float glossy_threshold = 0.1f;  // rough interfaces with alpha below this are chain vertices
   ConstraintForm form = ConstraintForm::Direction;
 };
 
@@ -70,6 +71,12 @@ struct ManifoldVertex {
   const Texture* nmap = nullptr;
   glm::dvec2 uv0{0.0}, duv1{0.0}, duv2{0.0};  // mesh: uv(u,v) = uv0 + u duv1 + v duv2
   DVec3 dpdu{0.0};                            // mesh: constant per triangle
+  // glossy vertex (MPG Sec. 5.7): a rough interface treated as a smooth one
+  // whose normal is the offset microfacet normal m_local (in the shading frame
+  // with s along e1), drawn from D(m) cos(theta_m) with the uniform pair offset_u.
+  const Microfacet* mf = nullptr;
+  glm::dvec3 m_local{0.0, 0.0, 1.0};
+  Vec2 offset_u{0.5f};
   DVec3 n{0.0};              // shading normal at p
   DVec3 ng{0.0};             // geometric normal at p
   Vec2 uv{0.f};
@@ -93,11 +100,14 @@ class ManifoldWalk {
   ManifoldWalk(const Scene& scene, WalkConfig cfg) : scene_(scene), cfg_(cfg) {}
 
   // Make a vertex (with its chart) from a surface hit; the letter decides R/T.
-  bool make_vertex(const SurfaceInteraction& si, bool reflect, ManifoldVertex& out) const;
+  // `offset_u` is the uniform pair that draws the offset normal when the surface
+  // is glossy (required there, ignored on smooth surfaces).
+  bool make_vertex(const SurfaceInteraction& si, bool reflect, ManifoldVertex& out,
+                   const Vec2* offset_u = nullptr) const;
   // The same, with the hit point recomputed in double precision from the ray
   // (o, d): Embree's float hit limits the residual to ~1e-6 otherwise.
   bool make_vertex_refined(const SurfaceInteraction& si, const DVec3& o, const DVec3& d,
-                           bool reflect, ManifoldVertex& out) const;
+                           bool reflect, ManifoldVertex& out, const Vec2* offset_u = nullptr) const;
 
   // Newton iterations with reprojection; `chain` is updated in place.
   WalkResult solve(ManifoldChain& chain) const;
@@ -120,7 +130,7 @@ class ManifoldWalk {
   // Trace a seed chain from xD along `dir` following the letters of `tau`
   // (R: mirror reflection, T: refraction about the shading normal).
   bool trace_seed(const DVec3& xD, const DVec3& nD, const DVec3& dir, const std::string& tau,
-                  ManifoldChain& chain, WalkFailure& why) const;
+                  ManifoldChain& chain, WalkFailure& why, const std::vector<Vec2>* offsets = nullptr) const;
 
   // Solve the block-tridiagonal system J X = R (R: n x 2 x m, m right-hand sides).
   bool solve_tridiagonal(const std::vector<double>& A, const std::vector<double>& B,

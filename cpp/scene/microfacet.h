@@ -51,7 +51,11 @@ struct Microfacet {
       pdf = pdf_m(wi, m);
       return m;
     }
-    // Slope-space sampling of D(m) cos(theta_m).
+    return sample_dcos(u, pdf);
+  }
+
+  // Slope-space sampling of D(m) cos(theta_m) (independent of the incident direction).
+  Vec3 sample_dcos(const Vec2& u, float& pdf) const {
     float sx, sy;
     const float phi = 2.f * kPi * u.y;
     if (type == MicrofacetType::Beckmann) {
