@@ -234,6 +234,8 @@ WalkConfig walk_config(const py::dict& p) {
   WalkConfig c;
   c.threshold = get<double>(p, "threshold", c.threshold);
   c.max_iterations = get<int>(p, "max_iterations", c.max_iterations);
+  c.glossy_threshold = get<float>(p, "glossy_threshold", c.glossy_threshold);
+  if (!(c.glossy_threshold >= 0.f)) throw std::invalid_argument("glossy_threshold must be >= 0");
   const std::string form = get<std::string>(p, "form", "direction");
   if (form == "direction") c.form = ConstraintForm::Direction;
   else if (form == "angle") c.form = ConstraintForm::Angle;

@@ -19,7 +19,7 @@ from mpg.scene.desc import IntegratorDesc, SceneDesc
 IMPLEMENTED = {"path", "sms", "sms_star"}
 PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
-                "threshold", "max_iterations", "form"}
+                "threshold", "max_iterations", "form", "glossy_threshold"}
 FALLBACK_TO_PATH = {"manifold_path_guiding", "mpg", "volpath", "ptracer", "path_filtered_ss"}
 # The SMS paper's integrators, with their parameter names, map onto `sms`.
 SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
@@ -81,7 +81,7 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
     for k in ("max_chain", "max_trials", "max_iterations"):
         if k in core_params:
             core_params[k] = int(core_params[k])
-    for k in ("continuation", "uniqueness_threshold", "threshold"):
+    for k in ("continuation", "uniqueness_threshold", "threshold", "glossy_threshold"):
         if k in core_params:
             core_params[k] = float(core_params[k])
     for k in ("max_depth", "rr_depth"):
