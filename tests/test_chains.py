@@ -251,6 +251,20 @@ def _floor_only_mask(sc, res, origin, target, fov):
     return mask
 
 
+def _assert_floor_agreement(sc, img, ref):
+    """|z| < 5 per channel on the floor pixels (all, and per image quadrant)."""
+    mask = _floor_only_mask(sc, 24, [0, 4, 2.5], [0, 0.3, 0], 40)
+    assert mask.sum() > 150
+    groups = [mask] + [mask & (np.arange(24)[:, None] // 12 == a) & (np.arange(24)[None, :] // 12 == b)
+                       for a in (0, 1) for b in (0, 1)]
+    for m in groups:
+        if m.sum() < 10:
+            continue
+        A, B = img.rgb[m].astype(np.float64), ref.rgb[m].astype(np.float64)
+        se = np.sqrt(img.variance[m].sum(axis=0) + ref.variance[m].sum(axis=0)) / m.sum()
+        assert np.all(np.abs(A.mean(axis=0) - B.mean(axis=0)) < 5 * se), (A.mean(axis=0), B.mean(axis=0), se)
+
+
 @pytest.mark.parametrize("kind,integ,spp", [("mirror", {"type": "sms", "tau": "R"}, 256),
                                             ("sphere", {"type": "sms_star", "max_chain": 3}, 256)])
 def test_normal_mapped_chains_agree_with_path_tracing(kind, integ, spp, scenes_dir):
@@ -262,16 +276,7 @@ def test_normal_mapped_chains_agree_with_path_tracing(kind, integ, spp, scenes_d
     ref = mpg.render(sc, integrator="path", spp=8192, seed=1, progress=False)
     img = mpg.render(sc, integrator=dict(integ), spp=spp, seed=2, progress=False)
     assert img.stats["chain_contributions"] > 100
-    mask = _floor_only_mask(sc, 24, [0, 4, 2.5], [0, 0.3, 0], 40)
-    assert mask.sum() > 150
-    groups = [mask] + [mask & (np.arange(24)[:, None] // 12 == a) & (np.arange(24)[None, :] // 12 == b)
-                       for a in (0, 1) for b in (0, 1)]
-    for m in groups:
-        if m.sum() < 10:
-            continue
-        A, B = img.rgb[m].astype(np.float64), ref.rgb[m].astype(np.float64)
-        se = np.sqrt(img.variance[m].sum(axis=0) + ref.variance[m].sum(axis=0)) / m.sum()
-        assert np.all(np.abs(A.mean(axis=0) - B.mean(axis=0)) < 5 * se)
+    _assert_floor_agreement(sc, img, ref)
 
 
 GLOSSY = """<scene version="3.0.0"><integrator type="path"><integer name="max_depth" value="5"/></integrator>
@@ -308,12 +313,4 @@ def test_glossy_chains_agree_with_path_tracing(kind, integ, spp):
     ref = mpg.render(sc, integrator="path", spp=8192, seed=1, progress=False)
     img = mpg.render(sc, integrator=dict(integ), spp=spp, seed=2, progress=False)
     assert img.stats["chain_contributions"] > 100
-    mask = _floor_only_mask(sc, 24, [0, 4, 2.5], [0, 0.3, 0], 40)
-    groups = [mask] + [mask & (np.arange(24)[:, None] // 12 == a) & (np.arange(24)[None, :] // 12 == b)
-                       for a in (0, 1) for b in (0, 1)]
-    for m in groups:
-        if m.sum() < 10:
-            continue
-        A, B = img.rgb[m].astype(np.float64), ref.rgb[m].astype(np.float64)
-        se = np.sqrt(img.variance[m].sum(axis=0) + ref.variance[m].sum(axis=0)) / m.sum()
-        assert np.all(np.abs(A.mean(axis=0) - B.mean(axis=0)) < 5 * se), (A.mean(axis=0), B.mean(axis=0), se)
+    _assert_floor_agreement(sc, img, ref)

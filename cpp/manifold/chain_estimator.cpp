@@ -163,20 +163,10 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
         reflect = rng.next_float() < F;
       }
       v.reflect = reflect;
-      if (reflect) {
-        d = 2.0 * ci * v.n - wi;
-      } else {
-        const double eta_rel = ci > 0.0 ? v.eta : 1.0 / v.eta;
-        const DVec3 nn = ci > 0.0 ? v.n : -v.n;
-        const double c = std::abs(ci);
-        const double sin2t = (1.0 - c * c) / (eta_rel * eta_rel);
-        if (sin2t >= 1.0) {
-          st.walk_failures[size_t(WalkFailure::TotalInternalReflection)]++;
-          return false;
-        }
-        d = -wi / eta_rel + nn * (c / eta_rel - std::sqrt(1.0 - sin2t));
+      if (!ManifoldWalk::scatter(wi, v.n, v.eta, reflect, d)) {
+        st.walk_failures[size_t(WalkFailure::TotalInternalReflection)]++;
+        return false;
       }
-      d = glm::normalize(d);
       o = v.p;
       on = v.ng;
       tau.push_back(reflect ? 'R' : 'T');

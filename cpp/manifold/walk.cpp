@@ -185,6 +185,39 @@ inline void mul2(const double* a, const double* b, double* c, int m) {
 
 }  // namespace
 
+// Put a sphere vertex at the point of direction q from the centre: tangent
+// chart and (possibly perturbed) normal.
+static void place_on_sphere(ManifoldVertex& v, const DVec3& q) {
+  v.p = v.center + q * v.radius;
+  DVec3 t1, t2;
+  tangents(q, t1, t2);
+  v.e1 = t1 * v.radius;
+  v.e2 = t2 * v.radius;
+  v.n = q * v.normal_sign;
+  if (v.nmap || v.mf) {
+    V3<double> pp, nn;
+    chart<double>(v, 0.0, 0.0, pp, nn);
+    v.n = DVec3(nn.x, nn.y, nn.z);
+  }
+}
+
+bool ManifoldWalk::scatter(const DVec3& wi, const DVec3& n, double eta, bool reflect, DVec3& wo) {
+  const double ci = glm::dot(wi, n);
+  if (reflect) {
+    wo = 2.0 * ci * n - wi;
+  } else {
+    // Snell's law in vector form (as vertex_constraint), n flipped to the side of wi.
+    const double eta_rel = ci > 0.0 ? eta : 1.0 / eta;
+    const DVec3 nn = ci > 0.0 ? n : -n;
+    const double c = std::abs(ci);
+    const double sin2t = (1.0 - c * c) / (eta_rel * eta_rel);
+    if (sin2t >= 1.0) return false;
+    wo = -wi / eta_rel + nn * (c / eta_rel - std::sqrt(1.0 - sin2t));
+  }
+  wo = glm::normalize(wo);
+  return true;
+}
+
 ManifoldVertex ManifoldWalk::moved(const ManifoldVertex& v, double du, double dv) {
   V3<double> p, n;
   chart<double>(v, du, dv, p, n);
@@ -246,18 +279,7 @@ bool ManifoldWalk::make_vertex(const SurfaceInteraction& si, bool reflect, Manif
     v.sphere = true;
     v.center = to_d(s.center);
     v.radius = double(s.radius);
-    const DVec3 q = glm::normalize(v.p - v.center);
-    v.p = v.center + q * v.radius;
-    DVec3 t1, t2;
-    tangents(q, t1, t2);
-    v.e1 = t1 * v.radius;
-    v.e2 = t2 * v.radius;
-    v.n = q * v.normal_sign;
-    if (v.nmap || v.mf) {
-      V3<double> pp, nn;
-      chart<double>(v, 0.0, 0.0, pp, nn);
-      v.n = DVec3(nn.x, nn.y, nn.z);
-    }
+    place_on_sphere(v, glm::normalize(v.p - v.center));
   } else {
     const glm::uvec3 tri = s.indices[size_t(si.prim)];
     const DVec3 p0 = to_d(s.positions[tri.x]), p1 = to_d(s.positions[tri.y]), p2 = to_d(s.positions[tri.z]);
@@ -319,18 +341,7 @@ bool ManifoldWalk::make_vertex_refined(const SurfaceInteraction& si_in, const DV
     const double sq = std::sqrt(disc);
     const double t0 = -b - sq, t1 = -b + sq;
     const double t = std::abs(t0 - double(si.t)) < std::abs(t1 - double(si.t)) ? t0 : t1;
-    const DVec3 q = glm::normalize(o + t * d - v.center);
-    v.p = v.center + q * v.radius;
-    DVec3 t1v, t2v;
-    tangents(q, t1v, t2v);
-    v.e1 = t1v * v.radius;
-    v.e2 = t2v * v.radius;
-    v.n = q * v.normal_sign;
-    if (v.nmap || v.mf) {
-      V3<double> pp, nn;
-      chart<double>(v, 0.0, 0.0, pp, nn);
-      v.n = DVec3(nn.x, nn.y, nn.z);
-    }
+    place_on_sphere(v, glm::normalize(o + t * d - v.center));
     return true;
   }
   if (!make_vertex(si, reflect, v, offset_u)) return false;
@@ -689,22 +700,10 @@ bool ManifoldWalk::trace_seed(const DVec3& xD, const DVec3& nD, const DVec3& dir
       why = WalkFailure::NotSpecular;
       return false;
     }
-    const DVec3 wi = -d;
-    const double ci = glm::dot(wi, v.n);
-    if (letter == 'R') {
-      d = 2.0 * ci * v.n - wi;
-    } else {
-      const double eta_rel = ci > 0.0 ? v.eta : 1.0 / v.eta;
-      const DVec3 nn = ci > 0.0 ? v.n : -v.n;
-      const double c = std::abs(ci);
-      const double sin2t = (1.0 - c * c) / (eta_rel * eta_rel);
-      if (sin2t >= 1.0) {
-        why = WalkFailure::TotalInternalReflection;
-        return false;
-      }
-      d = -wi / eta_rel + nn * (c / eta_rel - std::sqrt(1.0 - sin2t));
+    if (!scatter(-d, v.n, v.eta, letter == 'R', d)) {
+      why = WalkFailure::TotalInternalReflection;
+      return false;
     }
-    d = glm::normalize(d);
     o = v.p;
     on = v.ng;
     chain.v.push_back(v);

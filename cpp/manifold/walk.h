@@ -137,6 +137,10 @@ class ManifoldWalk {
                          const std::vector<double>& D, std::vector<double>& R, int m) const;
 
   const WalkConfig& config() const { return cfg_; }
+  // Ideal specular scattering of the direction toward the previous vertex `wi`
+  // about the vertex normal `n` (reflection, or refraction with relative IOR
+  // `eta` = int/ext); false on total internal reflection.
+  static bool scatter(const DVec3& wi, const DVec3& n, double eta, bool reflect, DVec3& wo);
   // The vertex moved by (du, dv) in its chart (position and shading normal); for tests.
   static ManifoldVertex moved(const ManifoldVertex& v, double du, double dv);
 
