@@ -11,6 +11,7 @@
 #include "integrators/path.h"
 #include "manifold/chain_estimator.h"
 #include "manifold/walk.h"
+#include "guiding/guiding_state.h"
 #include "render/render.h"
 #include "scene/fresnel.h"
 #include "scene/scene.h"
@@ -535,6 +536,82 @@ PYBIND11_MODULE(_core, m) {
       .def_property_readonly("progress", &RenderJob::progress)
       .def("result", [](RenderJob& j) { return pass_to_dict(j.result()); });
 
+
+  py::class_<GuidingState, std::shared_ptr<GuidingState>>(m, "GuidingState")
+      .def(py::init<>())
+      .def("build", [](GuidingState& g, const FArray& xD, const FArray& xL, const FArray& dirs,
+                       py::array_t<int, py::array::c_style | py::array::forcecast> n,
+                       py::array_t<uint16_t, py::array::c_style | py::array::forcecast> tau, const FArray& weight,
+                       py::object bmin, py::object bmax, float c, float epsilon, int max_depth, int threads) {
+        const auto pd = rows3(xD, "xD"), pl = rows3(xL, "xL"), dd = rows3(dirs, "dirs");
+        const size_t N = pd.size();
+        if (pl.size() != N || dd.size() != N || size_t(n.size()) != N || size_t(tau.size()) != N ||
+            size_t(weight.size()) != N)
+          throw std::invalid_argument("all sample arrays must have the same length");
+        std::vector<SubpathSample> s(N);
+        for (size_t i = 0; i < N; ++i) {
+          SubpathSample& x = s[i];
+          for (int k = 0; k < 3; ++k) { x.xD[k] = pd[i][k]; x.xL[k] = pl[i][k]; }
+          const Vec2 e = oct_encode(glm::normalize(dd[i]));
+          x.dir[0] = e.x; x.dir[1] = e.y;
+          x.n = uint8_t(n.data()[i]);
+          x.tau = tau.data()[i];
+          x.weight = weight.data()[i];
+          x.flags = 0;
+        }
+        if (!(epsilon >= 0.f && epsilon < 0.5f)) throw std::invalid_argument("epsilon must be in [0, 0.5)");
+        if (!(c > 0.f)) throw std::invalid_argument("c must be positive");
+        STreeConfig cfg; cfg.c = c; cfg.epsilon = epsilon; cfg.max_depth = max_depth;
+        const Vec3 lo = vec3(bmin), hi = vec3(bmax);  // with the GIL held
+        py::gil_scoped_release nogil;
+        g.build(s, lo, hi, cfg, threads);
+      }, py::arg("xD"), py::arg("xL"), py::arg("dirs"), py::arg("n"), py::arg("tau"), py::arg("weight"),
+         py::arg("bmin"), py::arg("bmax"), py::arg("c") = 1.f, py::arg("epsilon") = 0.1f,
+         py::arg("max_depth") = 36, py::arg("threads") = 2)
+      .def_property_readonly("num_leaves", [](const GuidingState& g) { return g.tree().num_leaves(); })
+      .def_property_readonly("num_nodes", [](const GuidingState& g) { return g.tree().num_nodes(); })
+      .def_property_readonly("samples_stored", [](const GuidingState& g) { return g.tree().num_samples_stored(); })
+      .def_property_readonly("threshold", [](const GuidingState& g) { return g.tree().threshold(); })
+      .def_property_readonly("build_seconds", &GuidingState::build_seconds)
+      .def("leaf_of", [](const GuidingState& g, py::object xD, py::object xL) { return g.tree().leaf_of(vec3(xD), vec3(xL)); })
+      .def("leaf", [](const GuidingState& g, int i) {
+        if (i < 0 || size_t(i) >= g.tree().num_leaves()) throw std::out_of_range("leaf index");
+        const STree::Leaf& l = g.tree().leaf(i);
+        const ssize_t k = ssize_t(l.samples.size());
+        FArray xd(std::vector<ssize_t>{k, 3}), xl(std::vector<ssize_t>{k, 3});
+        py::array_t<bool> filt(std::vector<ssize_t>{k});
+        for (ssize_t j = 0; j < k; ++j) {
+          const SubpathSample& s = l.samples[size_t(j)];
+          for (int a = 0; a < 3; ++a) { xd.mutable_at(j, a) = s.xD[a]; xl.mutable_at(j, a) = s.xL[a]; }
+          filt.mutable_at(j) = s.filtered();
+        }
+        py::dict r;
+        r["xD"] = xd; r["xL"] = xl; r["filtered"] = filt; r["unfiltered"] = l.unfiltered; r["depth"] = l.depth;
+        r["lo"] = std::vector<float>(l.lo, l.lo + 6); r["hi"] = std::vector<float>(l.hi, l.hi + 6);
+        return r;
+      })
+      .def("normalise", [](const GuidingState& g, py::object xD, py::object xL) {
+        float q[6]; g.tree().normalise(vec3(xD), vec3(xL), q); return std::vector<float>(q, q + 6); })
+      .def("pmf_n", [](const GuidingState& g, int leaf, int n) { return g.distribution(leaf).pmf_n(n); })
+      .def("pmf_tau", [](const GuidingState& g, int leaf, int n, uint16_t tau) { return g.distribution(leaf).pmf_tau(n, tau); })
+      .def("sample_dir", [](const GuidingState& g, int leaf, int n, uint16_t tau, const FArray& u) {
+        if (u.ndim() != 2 || u.shape(1) != 3) throw std::invalid_argument("u must have shape (N, 3)");
+        const ChainDistribution& d = g.distribution(leaf);
+        FArray out(std::vector<ssize_t>{u.shape(0), 3});
+        for (ssize_t i = 0; i < u.shape(0); ++i) {
+          Vec3 w(0.f);
+          if (!d.sample_dir(n, tau, u.at(i, 0), Vec2(u.at(i, 1), u.at(i, 2)), w)) w = Vec3(0.f);
+          out.mutable_at(i, 0) = w.x; out.mutable_at(i, 1) = w.y; out.mutable_at(i, 2) = w.z;
+        }
+        return out;
+      })
+      .def("pdf_dir", [](const GuidingState& g, int leaf, int n, uint16_t tau, const FArray& dirs) {
+        const auto d = rows3(dirs, "dirs");
+        DArray out(std::vector<ssize_t>{ssize_t(d.size())});
+        for (size_t i = 0; i < d.size(); ++i) out.mutable_data()[i] = g.distribution(leaf).pdf_dir(n, tau, d[i]);
+        return out;
+      });
+  m.attr("SUBPATH_SAMPLE_BYTES") = sizeof(SubpathSample);
   m.def("warp_sample", &warp_sample, py::arg("name"), py::arg("u"), py::arg("param") = 0.f);
   m.def("warp_pdf", &warp_pdf, py::arg("name"), py::arg("v"), py::arg("param") = 0.f);
   m.def("bsdf_sample", [](const Scene& s, int id, py::object wi_o, const FArray& u) {

@@ -1,0 +1,49 @@
+// The seed-chain distribution of one STree leaf (MPG Sec. 5.5, Eqs. 10-12):
+// P_e(n) and P_e(tau | n) from the summed sample weights, and per (n, tau) a
+// mixture of von Mises-Fisher lobes, one per sample, centred on its omega_D
+// with kappa_i = sigma_i^-2, sigma_i the distance to the nearest other sample
+// direction of the same (n, tau) (a particle footprint, Hey & Purgathofer 2002).
+#pragma once
+
+#include <map>
+#include <vector>
+
+#include "core/distribution.h"
+#include "guiding/subpath_sample.h"
+
+namespace mpg {
+
+class ChainDistribution {
+ public:
+  static constexpr int kMaxN = 16;
+  static constexpr float kMaxKappa = 1e8f;
+  static constexpr float kSingleKappa = 100.f;  // a lone sample's lobe (sigma = 0.1)
+
+  void build(const std::vector<SubpathSample>& samples);
+  bool empty() const { return n_dist_.empty(); }
+
+  int sample_n(float u) const;
+  float pmf_n(int n) const;
+  // Type for a given n: returns false when there is no sample of length n.
+  bool sample_tau(int n, float u, uint16_t& tau) const;
+  float pmf_tau(int n, uint16_t tau) const;
+  // Direction for (n, tau); density is per solid angle.
+  bool sample_dir(int n, uint16_t tau, float u_lobe, const Vec2& u, Vec3& dir) const;
+  float pdf_dir(int n, uint16_t tau, const Vec3& dir) const;
+
+  struct Lobes {
+    std::vector<Vec3> mu;
+    std::vector<float> kappa;
+    std::vector<float> weight;
+    DiscreteDistribution dist;
+  };
+  const Lobes* lobes(int n, uint16_t tau) const;
+
+ private:
+  DiscreteDistribution n_dist_;                    // index n - 1
+  std::vector<std::vector<uint16_t>> tau_keys_;    // per n
+  std::vector<DiscreteDistribution> tau_dist_;     // per n
+  std::map<std::pair<int, uint16_t>, Lobes> lobes_;
+};
+
+}  // namespace mpg
