@@ -19,6 +19,11 @@
 namespace py = pybind11;
 using namespace mpg;
 
+// Sub-path samples of a training pass, kept in C++ until the next STree build.
+struct SubpathBuffer {
+  std::vector<mpg::SubpathSample> v;
+};
+
 namespace {
 
 using FArray = py::array_t<float, py::array::c_style | py::array::forcecast>;
@@ -145,6 +150,9 @@ py::dict pass_to_dict(PassResult& r) {
   for (size_t i = 1; i < r.stats.walk_failures.size(); ++i)
     st[std::string("walk_fail_") + walk_failure_name(WalkFailure(i))] = double(r.stats.walk_failures[i]);
   out["stats"] = st;
+  auto buf = std::make_shared<SubpathBuffer>();
+  buf->v = std::move(r.stats.subpaths);
+  out["subpaths"] = buf;
   return out;
 }
 
@@ -159,10 +167,22 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
   if (pp.max_depth < -1) throw std::invalid_argument("max_depth must be -1 or >= 0");
   if (pp.rr_depth < 0) throw std::invalid_argument("rr_depth must be >= 0");
   if (type == "path") return std::make_shared<PathIntegrator>(pp);
-  if (type == "sms" || type == "sms_star") {
+  if (type == "sms" || type == "sms_star" || type == "mpg") {
     if (!scene || !scene->committed()) throw std::runtime_error("scene not committed");
     ChainParams cp;
     cp.mode = type == "sms" ? ChainParams::Mode::Sms : ChainParams::Mode::SmsStar;
+    if (type == "mpg") {
+      if (p.contains("guide") && !p["guide"].is_none())
+        cp.guide = py::cast<std::shared_ptr<GuidingState>>(p["guide"]);
+      cp.guide_fraction = get<float>(p, "guide_fraction", cp.guide_fraction);
+      cp.selective = get<bool>(p, "selective", cp.selective);
+      cp.record = get<bool>(p, "record", false);
+      cp.guide_n = get<bool>(p, "guide_n", true);
+      cp.guide_tau = get<bool>(p, "guide_tau", true);
+      cp.guide_dir = get<bool>(p, "guide_dir", true);
+      if (!(cp.guide_fraction >= 0.f && cp.guide_fraction < 1.f))
+        throw std::invalid_argument("guide_fraction must be in [0, 1)");
+    }
     cp.tau = get<std::string>(p, "tau", "TT");
     for (char c : cp.tau)
       if (c != 'R' && c != 'T') throw std::invalid_argument("tau must be a string of R and T");
@@ -537,8 +557,23 @@ PYBIND11_MODULE(_core, m) {
       .def("result", [](RenderJob& j) { return pass_to_dict(j.result()); });
 
 
+  py::class_<SubpathBuffer, std::shared_ptr<SubpathBuffer>>(m, "SubpathBuffer")
+      .def("__len__", [](const SubpathBuffer& b) { return b.v.size(); })
+      .def_property_readonly("nbytes", [](const SubpathBuffer& b) { return b.v.size() * sizeof(SubpathSample); });
+
   py::class_<GuidingState, std::shared_ptr<GuidingState>>(m, "GuidingState")
       .def(py::init<>())
+      .def("build_from", [](GuidingState& g, const std::vector<std::shared_ptr<SubpathBuffer>>& bufs,
+                            py::object bmin, py::object bmax, float c, float epsilon, int max_depth, int threads) {
+        std::vector<SubpathSample> all;
+        for (const auto& b : bufs) all.insert(all.end(), b->v.begin(), b->v.end());
+        STreeConfig cfg; cfg.c = c; cfg.epsilon = epsilon; cfg.max_depth = max_depth;
+        const Vec3 lo = vec3(bmin), hi = vec3(bmax);
+        py::gil_scoped_release nogil;
+        g.build(all, lo, hi, cfg, threads);
+        return all.size();
+      }, py::arg("buffers"), py::arg("bmin"), py::arg("bmax"), py::arg("c") = 1.f, py::arg("epsilon") = 0.1f,
+         py::arg("max_depth") = 36, py::arg("threads") = 2)
       .def("build", [](GuidingState& g, const FArray& xD, const FArray& xL, const FArray& dirs,
                        py::array_t<int, py::array::c_style | py::array::forcecast> n,
                        py::array_t<uint16_t, py::array::c_style | py::array::forcecast> tau, const FArray& weight,

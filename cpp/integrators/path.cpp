@@ -14,6 +14,7 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
   const uint32_t max_depth = uint32_t(p_.max_depth);  // -1 -> unbounded, as Mitsuba 3
   // Specular chain since the last separator (for ownership by the chain estimator).
   uint32_t sep_depth = 0;
+  Vec3 sep_p(0.f);
   std::string tau;
   bool chain_ok = false;
 
@@ -36,7 +37,8 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     const Shape& shape = scene.shapes[size_t(si.shape)];
     if (shape.emitter >= 0 && show) {
       const Color Le = scene.emitted(si);
-      if (chains_ && chain_ok && !tau.empty() && chains_->owns(sep_depth, max_depth, tau)) {
+      if (chains_ && chain_ok && !tau.empty() && chains_->owns(sep_depth, max_depth, tau) &&
+          chains_->active_for(sep_p, si.p)) {
         if (!is_black(Le)) st.owned_dropped++;
       } else if (!is_black(Le)) {
         const float w = prev_delta ? 1.f : power_heuristic(prev_pdf, scene.pdf_emitter_hit(prev_p, si));
@@ -88,6 +90,7 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     if (chains_) {
       if (separator) {
         sep_depth = depth;
+        sep_p = si.p;
         tau.clear();
         chain_ok = true;
       } else if (chain_ok) {

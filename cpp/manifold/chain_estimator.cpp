@@ -92,6 +92,13 @@ int ChainEstimator::sample_n(float u, int nmax) const {
   return nmax;
 }
 
+double ChainEstimator::pmf_n_mix(int n, int nmax, const ChainDistribution* d, double mass) const {
+  const double p0 = pmf_n(n, nmax);
+  if (!d || !p_.guide_n || !(mass > 0.0)) return p0;
+  const double pe = n <= nmax ? double(d->pmf_n(n)) / mass : 0.0;
+  return (1.0 - p_.guide_fraction) * p0 + p_.guide_fraction * pe;  // MPG Eq. 13
+}
+
 bool ChainEstimator::sample_light(PCG32& rng, LightPoint& lp) const {
   float u = rng.next_float();
   const size_t k = light_dist_.sample(u);
@@ -118,8 +125,35 @@ bool ChainEstimator::sample_light(PCG32& rng, LightPoint& lp) const {
 }
 
 bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
-                           const std::vector<Vec2>& offsets, PCG32& rng, ManifoldChain& chain,
-                           std::string& tau, Stats& st) const {
+                           const std::vector<Vec2>& offsets, const ChainDistribution* guide,
+                           PCG32& rng, ManifoldChain& chain, std::string& tau, Stats& st) const {
+  if (guide && rng.next_float() < p_.guide_fraction) {
+    // Learned seed (MPG Sec. 5.5): tau ~ P_e(tau | n), omega_D ~ the vMF mixture of
+    // (n, tau); one-sample MIS with the initial distribution below (Eq. 13).
+    st.guided_trials++;
+    uint16_t bits = 0;
+    Vec3 dir;
+    if (!guide->sample_tau(n, rng.next_float(), bits)) return false;
+    const float ul = rng.next_float();
+    const Vec2 u(rng.next_float(), rng.next_float());
+    if (!guide->sample_dir(n, bits, ul, u, dir)) return false;
+    tau.assign(size_t(n), 'T');
+    for (int i = 0; i < n; ++i)
+      if (bits & (1u << i)) tau[size_t(i)] = 'R';
+    chain.xL = lp.p;
+    chain.nL = lp.n;
+    WalkFailure why = WalkFailure::None;
+    if (!walk_.trace_seed(xD, nD, to_d(dir), tau, chain, why, &offsets)) {
+      st.walk_failures[size_t(why)]++;
+      return false;
+    }
+    const WalkResult r = walk_.solve(chain);
+    if (!r.converged) {
+      st.walk_failures[size_t(r.failure)]++;
+      return false;
+    }
+    return true;
+  }
   // x_1 uniform by area on the specular shapes; the seed direction aims at it.
   float u = rng.next_float();
   const size_t k = seed_dist_.sample(u);
@@ -254,17 +288,43 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
   st.chain_estimates++;
   Color result(0.f);
   LightPoint lp;
-  const int n = sample_n(rng.next_float(), nmax);
   const DVec3 xD = to_d(si.p), nD = to_d(si.ng);
-  // Offset normals of glossy vertices: drawn once, shared by all trials (the
-  // admissible set is finite given them; method-notes Sec. 7).
-  std::vector<Vec2> offsets(static_cast<size_t>(n));
-  for (auto& o : offsets) o = Vec2(rng.next_float(), rng.next_float());
   ManifoldChain chain;
   std::string tau;
   do {
     if (!sample_light(rng, lp)) break;
-    if (!trial(xD, nD, lp, n, offsets, rng, chain, tau, st)) break;
+    // The leaf of (x_D, x_L): learned distribution, and selective activation.
+    const ChainDistribution* guide = nullptr;
+    if (p_.guide && p_.guide->valid()) {
+      guide = p_.guide->query(to_f(xD), to_f(lp.p));
+      if (!guide && p_.selective) {
+        st.chain_inactive++;
+        break;
+      }
+    }
+    double mass = 0.0;
+    if (guide)
+      for (int k = 1; k <= nmax; ++k) mass += guide->pmf_n(k);
+    int n;
+    if (guide && p_.guide_n && mass > 0.0 && rng.next_float() < p_.guide_fraction) {
+      // n from P_e truncated at nmax (inverse CDF over the allowed lengths)
+      const double u = double(rng.next_float()) * mass;
+      double c = 0.0;
+      n = nmax;
+      for (int k = 1; k <= nmax; ++k) {
+        c += guide->pmf_n(k);
+        if (u < c) { n = k; break; }
+      }
+    } else {
+      n = sample_n(rng.next_float(), nmax);
+    }
+    const double pn = pmf_n_mix(n, nmax, guide, mass);
+    // Offset normals of glossy vertices: drawn once, shared by all trials (the
+    // admissible set is finite given them; method-notes Sec. 7).
+    std::vector<Vec2> offsets(static_cast<size_t>(n));
+    for (auto& o : offsets) o = Vec2(rng.next_float(), rng.next_float());
+    const ChainDistribution* seed_guide = (guide && (p_.guide_tau || p_.guide_dir)) ? guide : nullptr;
+    if (!trial(xD, nD, lp, n, offsets, seed_guide, rng, chain, tau, st)) break;
     st.chain_converged++;
     const ManifoldVertex& last = chain.v.back();
     // One-sided area light; visibility of the last segment (the others are first hits).
@@ -300,12 +360,25 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     const int K = bernoulli_count(
         [&] {
           st.bernoulli_trials++;
-          return trial(xD, nD, lp, n, offsets, rng, other, tau2, st) && tau2 == tau_star &&
+          return trial(xD, nD, lp, n, offsets, seed_guide, rng, other, tau2, st) && tau2 == tau_star &&
                  glm::length(glm::normalize(other.v[0].p - xD) - w_star) < p_.uniqueness_threshold;
         },
         p_.max_trials, capped);
     if (capped) st.bernoulli_capped++;
-    double scale = G * double(K) / (lp.pdf * pmf_n(n, nmax));
+    if (p_.record && !capped) {
+      // Sub-path sample for the next training iteration: w = T <1/P> (MPG Eq. 9).
+      SubpathSample ss;
+      for (int a = 0; a < 3; ++a) { ss.xD[a] = float(xD[a]); ss.xL[a] = float(lp.p[a]); }
+      const Vec2 e = oct_encode(to_f(w_star));
+      ss.dir[0] = e.x;
+      ss.dir[1] = e.y;
+      ss.weight = luminance(kap * Le) * float(G) * float(K);
+      ss.n = uint8_t(n);
+      ss.tau = tau_bits(tau_star.data(), n);
+      ss.flags = 0;
+      if (std::isfinite(ss.weight) && ss.weight > 0.f) st.subpaths.push_back(ss);
+    }
+    double scale = G * double(K) / (lp.pdf * pn);
     if (lp.point) {
       // Irradiance I kappa G; f already carries |cos theta_D|, which G contains too.
       const float cosD = std::abs(glm::dot(wD, si.sh.n));

@@ -23,6 +23,7 @@
 
 #include "core/distribution.h"
 #include "core/rng.h"
+#include "guiding/guiding_state.h"
 #include "manifold/walk.h"
 #include "render/stats.h"
 #include "scene/scene.h"
@@ -54,6 +55,14 @@ struct ChainParams {
   double uniqueness_threshold = 1e-4;
   int max_trials = 100000;
   WalkConfig walk;
+  // Manifold path guiding (MPG): learned seed distribution mixed with the
+  // initial one by one-sample MIS (Eq. 13), selective activation (Sec. 5.8),
+  // recording of sub-path samples for the next training iteration.
+  std::shared_ptr<const GuidingState> guide;
+  float guide_fraction = 0.5f;     // alpha of Eq. 13
+  bool selective = true;           // chains only where the leaf holds unfiltered samples
+  bool record = false;             // store SubpathSamples in Stats::subpaths
+  bool guide_n = true, guide_tau = true, guide_dir = true;  // ablation switches
 };
 
 class ChainEstimator {
@@ -64,6 +73,10 @@ class ChainEstimator {
   // Does the estimator produce chains of type `tau` at a separator of loop depth
   // `depth` (path tracer's convention, camera hit = 0) under `max_depth`?
   bool owns(uint32_t depth, uint32_t max_depth, const std::string& tau) const;
+  // With selective activation, ownership also depends on the configuration.
+  bool active_for(const Vec3& xD, const Vec3& xL) const {
+    return !(p_.guide && p_.guide->valid() && p_.selective) || p_.guide->query(xD, xL) != nullptr;
+  }
   // Is shape `s` a surface the walk accepts as a specular vertex?
   bool is_chain_shape(int s) const { return specular_shape_[size_t(s)] != 0; }
   // Is this resolved BSDF a chain vertex (smooth, or glossy below the
@@ -90,10 +103,12 @@ class ChainEstimator {
   int max_len(uint32_t depth, uint32_t max_depth) const;
   double pmf_n(int n, int nmax) const;
   int sample_n(float u, int nmax) const;
+  // P(n) of the mixture of the initial law and the learned one (truncated at nmax).
+  double pmf_n_mix(int n, int nmax, const ChainDistribution* d, double learned_mass) const;
   // One trial: seed + walk. Fills chain and tau on success.
   bool trial(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
-             const std::vector<Vec2>& offsets, PCG32& rng, ManifoldChain& chain, std::string& tau,
-             Stats& st) const;
+             const std::vector<Vec2>& offsets, const ChainDistribution* guide, PCG32& rng,
+             ManifoldChain& chain, std::string& tau, Stats& st) const;
   Color kappa(const ManifoldChain& chain, const std::string& tau) const;
 
   const Scene& scene_;

@@ -5,6 +5,9 @@
 #include <cstdint>
 #include <map>
 #include <string>
+#include <vector>
+
+#include "guiding/subpath_sample.h"
 
 namespace mpg {
 
@@ -27,6 +30,10 @@ struct Stats {
   uint64_t owned_dropped = 0;        // path-traced chain paths dropped (owned by the estimator)
   uint64_t chain_ns = 0;             // time in chain estimation (summed over threads)
   std::array<uint64_t, 11> walk_failures{};  // by WalkFailure
+  // guiding (mpg)
+  uint64_t guided_trials = 0;        // trials whose seed came from the learned distribution
+  uint64_t chain_inactive = 0;       // separators skipped by selective activation
+  std::vector<SubpathSample> subpaths;  // recorded in training passes
 
   void merge(const Stats& o) {
     samples += o.samples; camera_rays += o.camera_rays; rays += o.rays;
@@ -37,6 +44,9 @@ struct Stats {
     chain_contributions += o.chain_contributions; bernoulli_trials += o.bernoulli_trials;
     bernoulli_capped += o.bernoulli_capped; owned_dropped += o.owned_dropped; chain_ns += o.chain_ns;
     for (size_t i = 0; i < walk_failures.size(); ++i) walk_failures[i] += o.walk_failures[i];
+    guided_trials += o.guided_trials;
+    chain_inactive += o.chain_inactive;
+    subpaths.insert(subpaths.end(), o.subpaths.begin(), o.subpaths.end());
   }
   std::map<std::string, double> to_map() const {
     return {{"samples", double(samples)},           {"camera_rays", double(camera_rays)},
@@ -47,7 +57,9 @@ struct Stats {
             {"chain_estimates", double(chain_estimates)}, {"chain_converged", double(chain_converged)},
             {"chain_contributions", double(chain_contributions)},
             {"bernoulli_trials", double(bernoulli_trials)}, {"bernoulli_capped", double(bernoulli_capped)},
-            {"owned_dropped", double(owned_dropped)}, {"chain_ns", double(chain_ns)}};
+            {"owned_dropped", double(owned_dropped)}, {"chain_ns", double(chain_ns)},
+            {"guided_trials", double(guided_trials)}, {"chain_inactive", double(chain_inactive)},
+            {"subpath_samples", double(subpaths.size())}};
   }
   // Walk failures by reason (names from walk_failure_name, index = WalkFailure).
   std::array<uint64_t, 11> failures() const { return walk_failures; }

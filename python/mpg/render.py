@@ -16,11 +16,13 @@ from mpg.scene.desc import IntegratorDesc, SceneDesc
 
 # Integrators implemented by the core, and the papers' names that map onto
 # them until their own implementation lands (kept as hints, with a warning).
-IMPLEMENTED = {"path", "sms", "sms_star"}
+IMPLEMENTED = {"path", "sms", "sms_star", "mpg"}
 PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
                 "threshold", "max_iterations", "form", "glossy_threshold"}
-FALLBACK_TO_PATH = {"manifold_path_guiding", "mpg", "volpath", "ptracer", "path_filtered_ss"}
+GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
+                "guide_dir", "training_fraction", "stree_c", "stree_epsilon"}
+FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
 # The SMS paper's integrators, with their parameter names, map onto `sms`.
 SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
 
@@ -63,6 +65,11 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
         name = params.pop("type", "path")
     else:
         raise RenderError(f"integrator must be a name or a dict, got {type(integrator).__name__}")
+    if name == "manifold_path_guiding":
+        # the MPG paper's integrator: its knobs are hints (kept), ours take over
+        params = {k: v for k, v in params.items() if k in PATH_PARAMS}
+        warnings.append("integrator 'manifold_path_guiding' runs as 'mpg' with mpg's defaults")
+        name = "mpg"
     if name in SMS_PAPER:
         params = _sms_paper_params(scene, name, params, warnings)
         name = "sms"
@@ -76,12 +83,14 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
         raise RenderError(
             f"unknown integrator '{name}' (available: {', '.join(sorted(IMPLEMENTED))})"
         )
-    allowed = PATH_PARAMS | (CHAIN_PARAMS if name != "path" else set())
+    allowed = PATH_PARAMS | (CHAIN_PARAMS if name != "path" else set()) | (
+        GUIDE_PARAMS if name == "mpg" else set())
     core_params = {k: v for k, v in params.items() if k in allowed}
     for k in ("max_chain", "max_trials", "max_iterations"):
         if k in core_params:
             core_params[k] = int(core_params[k])
-    for k in ("continuation", "uniqueness_threshold", "threshold", "glossy_threshold"):
+    for k in ("continuation", "uniqueness_threshold", "threshold", "glossy_threshold",
+              "guide_fraction", "training_fraction", "stree_c", "stree_epsilon"):
         if k in core_params:
             core_params[k] = float(core_params[k])
     for k in ("max_depth", "rr_depth"):
@@ -193,6 +202,11 @@ def render(
     if threads is not None and threads < 1:
         raise RenderError(f"threads must be at least 1, got {threads}")
     name, params, warnings = _resolve_integrator(scene, integrator)
+    if name == "mpg" and "guide" not in params:
+        from mpg.guiding import render_mpg
+
+        return render_mpg(scene, params, warnings, spp=spp, time=time, seed=seed, threads=threads,
+                          progress=progress)
     try:
         integ = _core.make_integrator(scene.core, name, params)
     except ValueError as e:

@@ -1,0 +1,98 @@
+"""Manifold path guiding (MPG, Fan et al. 2023): the training/rendering loop.
+
+Training (Sec. 5.8): iterations of 1, 2, 4, ... spp whose chain solutions are
+recorded as sub-path samples; after each iteration the guiding state (STree +
+per-leaf chain distributions) is rebuilt from that iteration's samples only.
+Training stops at `training_fraction` (30 %) of the budget, and a new iteration
+only starts while less than half of the training budget is spent. Training
+passes are never splatted into the image. The rest of the budget renders with
+the last guiding state (recording off)."""
+
+from __future__ import annotations
+
+import sys
+import time as _time
+from typing import Any, Optional
+
+from mpg.errors import RenderError
+
+
+def render_mpg(scene, params: dict, warnings: list[str], spp: Optional[int], time: Optional[float],
+               seed: int, threads: Optional[int], progress: Optional[bool]):
+    from mpg import _core
+    from mpg.render import render
+
+    frac = float(params.pop("training_fraction", 0.3))
+    c = float(params.pop("stree_c", 1.0))
+    eps = float(params.pop("stree_epsilon", 0.1))
+    if not 0.0 <= frac < 1.0:
+        raise RenderError(f"training_fraction must be in [0, 1), got {frac}")
+    core = scene.core
+    bmin, bmax = core.bbox
+    show = (sys.stderr.isatty() if progress is None else progress)
+    t0 = _time.monotonic()
+    guide = None
+    spp_train = 0
+    iterations = 0
+    samples_last = 0
+    build_seconds = 0.0
+    leaves = 0
+    # Effects follow the scene: no caster or no chain emitter -> no training at all.
+    probe = _core.make_integrator(core, "mpg", dict(params, record=True))
+    if probe.chains_active and frac > 0.0:
+        budget_spp = None if spp is None else max(0, int(frac * spp))
+        budget_t = None if time is None else frac * time
+        k = 1
+        while True:
+            used_t = _time.monotonic() - t0
+            if budget_spp is not None and (spp_train + k > budget_spp or spp_train >= budget_spp / 2):
+                break
+            if budget_t is not None and used_t >= budget_t / 2:
+                break
+            integ = _core.make_integrator(core, "mpg", dict(params, record=True, guide=guide))
+            job = _core.RenderJob(core, integ, k, seed, 1_000_000 + iterations, threads or 0)
+            while not job.wait(0.05):
+                if budget_t is not None and _time.monotonic() - t0 > budget_t:
+                    job.cancel()
+            r = job.result()
+            if r["cancelled"]:
+                break
+            spp_train += k
+            iterations += 1
+            buf = r["subpaths"]
+            samples_last = len(buf)
+            if samples_last > 0:
+                state = _core.GuidingState()
+                state.build_from([buf], bmin, bmax, c=c, epsilon=eps, threads=threads or 2)
+                build_seconds += state.build_seconds
+                leaves = state.num_leaves
+                guide = state
+            if show:
+                sys.stderr.write(f"\rmpg: training iteration {iterations}: {k} spp, "
+                                 f"{samples_last} sub-path samples, {leaves} leaves, "
+                                 f"{_time.monotonic() - t0:.1f} s")
+                sys.stderr.flush()
+            k *= 2
+        if show:
+            sys.stderr.write("\n")
+    seconds_training = _time.monotonic() - t0
+    rest_spp = None if spp is None else max(1, spp - spp_train)
+    rest_t = None if time is None else max(0.05, time - seconds_training)
+    img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
+                 spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress)
+    st: dict[str, Any] = img.stats
+    st["warnings"] = list(dict.fromkeys(st.get("warnings", []) + warnings))
+    st["integrator"] = "mpg"
+    st["integrator_params"] = {k: v for k, v in params.items() if k != "guide"}
+    st["spp_training"] = spp_train
+    st["spp_rendering"] = img.spp
+    st["training_iterations"] = iterations
+    st["seconds_training"] = seconds_training
+    st["seconds_guide_build"] = build_seconds
+    st["subpath_samples"] = samples_last
+    st["guide_leaves"] = leaves
+    st["guide_bytes"] = samples_last * _core.SUBPATH_SAMPLE_BYTES
+    st["seconds"] = _time.monotonic() - t0
+    est = st.get("chain_estimates", 0) + st.get("chain_inactive", 0)
+    st["activation_rate"] = (st.get("chain_estimates", 0) / est) if est else 0.0
+    return img
