@@ -7,7 +7,7 @@ import json
 import os
 import signal
 import sys
-from typing import Optional, Sequence
+from collections.abc import Sequence
 
 from mpg.errors import MPGError
 
@@ -54,7 +54,7 @@ def _raise_interrupt(signum, frame):  # SIGTERM behaves like Ctrl-C: stop and wr
     raise KeyboardInterrupt
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return _run(args)

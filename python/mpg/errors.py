@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from typing import Optional
-
 
 class MPGError(Exception):
     """Base class of every error mpg raises on purpose."""
@@ -12,7 +10,7 @@ class MPGError(Exception):
 class SceneError(MPGError):
     """Bad scene input. The message names the file, the line and the problem."""
 
-    def __init__(self, message: str, file: Optional[str] = None, line: Optional[int] = None):
+    def __init__(self, message: str, file: str | None = None, line: int | None = None):
         self.file = file
         self.line = line
         self.problem = message

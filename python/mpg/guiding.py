@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import sys
 import time as _time
-from typing import Any, Optional
+from typing import Any
 
 from mpg.errors import RenderError
 
 
-def render_mpg(scene, params: dict, warnings: list[str], spp: Optional[int], time: Optional[float],
-               seed: int, threads: Optional[int], progress: Optional[bool]):
+def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
+               seed: int, threads: int | None, progress: bool | None):
     from mpg import _core
     from mpg.render import render
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 
@@ -42,7 +42,7 @@ def _ensure_dir(path: str) -> None:
     os.makedirs(d, exist_ok=True)
 
 
-def write_exr(path: str, rgb: np.ndarray, variance: Optional[np.ndarray] = None) -> None:
+def write_exr(path: str, rgb: np.ndarray, variance: np.ndarray | None = None) -> None:
     """Write linear RGB (and optionally a `variance` layer) as a float32 OpenEXR file."""
     import OpenEXR
 
@@ -63,7 +63,7 @@ def write_exr(path: str, rgb: np.ndarray, variance: Optional[np.ndarray] = None)
         raise MPGError(f"{path}: could not write the EXR file: {e}") from None
 
 
-def read_exr(path: str) -> tuple[np.ndarray, Optional[np.ndarray]]:
+def read_exr(path: str) -> tuple[np.ndarray, np.ndarray | None]:
     """Read an RGB EXR (as written by write_exr or other tools): (rgb, variance or None)."""
     import OpenEXR
 

@@ -6,7 +6,7 @@ import math
 import sys
 import time as _time
 from dataclasses import dataclass, field
-from typing import Any, Optional, Union
+from typing import Any
 
 import numpy as np
 
@@ -137,12 +137,12 @@ def _sms_paper_params(scene: Scene, name: str, params: dict, warnings: list[str]
 class Progress:
     """A one-line progress bar with ETA on stderr (only when it is a terminal)."""
 
-    def __init__(self, enabled: Optional[bool] = None, stream=None):
+    def __init__(self, enabled: bool | None = None, stream=None):
         self.stream = stream or sys.stderr
         self.enabled = self.stream.isatty() if enabled is None else enabled
         self._last = 0.0
 
-    def update(self, frac: float, spp_done: int, spp_total: Optional[int], elapsed: float,
+    def update(self, frac: float, spp_done: int, spp_total: int | None, elapsed: float,
                force: bool = False) -> None:
         if not self.enabled:
             return
@@ -177,12 +177,12 @@ def pass_schedule(first: int = 1, cap: int = 32):
 
 def render(
     scene: Scene,
-    integrator: Union[None, str, dict, IntegratorDesc] = None,
-    spp: Optional[int] = None,
-    time: Optional[float] = None,
+    integrator: None | str | dict | IntegratorDesc = None,
+    spp: int | None = None,
+    time: float | None = None,
     seed: int = 0,
-    threads: Optional[int] = None,
-    progress: Optional[bool] = None,
+    threads: int | None = None,
+    progress: bool | None = None,
 ) -> Image:
     """Render `scene` and return an Image.
 

@@ -16,7 +16,7 @@ Conventions (Mitsuba 3's, so the same file gives the same image in both):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 
@@ -44,17 +44,17 @@ class TextureDesc:
     """
 
     kind: str
-    value: Optional[np.ndarray] = None
-    image: Optional[np.ndarray] = None
-    color0: Optional[np.ndarray] = None
-    color1: Optional[np.ndarray] = None
+    value: np.ndarray | None = None
+    image: np.ndarray | None = None
+    color0: np.ndarray | None = None
+    color1: np.ndarray | None = None
     to_uv: np.ndarray = field(default_factory=lambda: np.eye(3))
     filter: str = "bilinear"
     wrap: str = "repeat"
-    source: Optional[SourcePos] = None
+    source: SourcePos | None = None
 
     @staticmethod
-    def constant(v: Any) -> "TextureDesc":
+    def constant(v: Any) -> TextureDesc:
         a = np.broadcast_to(np.asarray(v, dtype=np.float64), (3,)).copy()
         return TextureDesc(kind="constant", value=a)
 
@@ -81,8 +81,8 @@ class BSDFDesc:
 
     type: str
     params: dict[str, Any] = field(default_factory=dict)
-    id: Optional[str] = None
-    source: Optional[SourcePos] = None
+    id: str | None = None
+    source: SourcePos | None = None
 
 
 @dataclass
@@ -104,7 +104,7 @@ class EmitterDesc:
     type: str
     params: dict[str, Any] = field(default_factory=dict)
     hints: set[str] = field(default_factory=set)
-    source: Optional[SourcePos] = None
+    source: SourcePos | None = None
 
 
 @dataclass
@@ -121,17 +121,17 @@ class ShapeDesc:
 
     kind: str
     bsdf: BSDFDesc
-    positions: Optional[np.ndarray] = None
-    indices: Optional[np.ndarray] = None
-    normals: Optional[np.ndarray] = None
-    uvs: Optional[np.ndarray] = None
-    center: Optional[np.ndarray] = None
+    positions: np.ndarray | None = None
+    indices: np.ndarray | None = None
+    normals: np.ndarray | None = None
+    uvs: np.ndarray | None = None
+    center: np.ndarray | None = None
     radius: float = 0.0
     flip_normals: bool = False
-    emitter: Optional[EmitterDesc] = None
+    emitter: EmitterDesc | None = None
     hints: set[str] = field(default_factory=set)
-    id: Optional[str] = None
-    source: Optional[SourcePos] = None
+    id: str | None = None
+    source: SourcePos | None = None
 
 
 @dataclass
@@ -153,14 +153,14 @@ class CameraDesc:
     crop: tuple[int, int, int, int] = (0, 0, 768, 576)   # offset_x, offset_y, width, height
     rfilter: FilterDesc = field(default_factory=FilterDesc)
     spp: int = 4                      # the sampler's sample_count
-    source: Optional[SourcePos] = None
+    source: SourcePos | None = None
 
 
 @dataclass
 class IntegratorDesc:
     type: str = "path"
     params: dict[str, Any] = field(default_factory=dict)   # max_depth, rr_depth, hide_emitters...
-    source: Optional[SourcePos] = None
+    source: SourcePos | None = None
 
 
 @dataclass
@@ -169,5 +169,5 @@ class SceneDesc:
     emitters: list[EmitterDesc] = field(default_factory=list)   # non-area emitters
     camera: CameraDesc = field(default_factory=CameraDesc)
     integrator: IntegratorDesc = field(default_factory=IntegratorDesc)
-    filename: Optional[str] = None
+    filename: str | None = None
     warnings: list[str] = field(default_factory=list)
