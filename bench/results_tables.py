@@ -1,0 +1,88 @@
+"""Markdown tables for docs/results.md from the folders that `mpg-bench compare`
+and `mpg-bench curves` wrote (their results.json).
+
+    python bench/results_tables.py bench/results/compare-default bench/results/curves-default
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import sys
+
+
+def scene_name(s: dict) -> str:
+    sc = s["scene"]
+    return sc["name"] if isinstance(sc, dict) else str(sc)
+
+
+def fmt(x: float) -> str:
+    return f"{x:.3g}"
+
+
+def compare_table(folder: pathlib.Path) -> str:
+    r = json.loads((folder / "results.json").read_text())
+    names: list[str] = []
+    for s in r["scenes"]:
+        for m in s["methods"]:
+            if m["integrator"] not in names:
+                names.append(m["integrator"])
+    out = [f"relMSE whole image / caustic box, mean over {r['seeds']} seeds, {r['time']} s per render "
+           f"(`{r.get('command', '')}`):", "",
+           "| scene | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
+    for s in r["scenes"]:
+        cells = []
+        by = {m["integrator"]: m["summary"] for m in s["methods"]}
+        for n in names:
+            if n not in by:
+                cells.append("–")
+                continue
+            im = by[n]["image"]["relmse"]["mean"]
+            ca = ((by[n].get("caustic") or {}).get("relmse") or {}).get("mean")
+            cells.append(fmt(im) + (f" / {fmt(ca)}" if ca is not None else ""))
+        out.append(f"| {scene_name(s)} | " + " | ".join(cells) + " |")
+    out += ["", "MAPE whole image (robust to fireflies):", "",
+            "| scene | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
+    for s in r["scenes"]:
+        by = {m["integrator"]: m["summary"] for m in s["methods"]}
+        out.append(f"| {scene_name(s)} | " + " | ".join(
+            fmt(by[n]["image"]["mape"]["mean"]) if n in by else "–" for n in names) + " |")
+    return "\n".join(out)
+
+
+def curves_table(folder: pathlib.Path) -> str:
+    r = json.loads((folder / "results.json").read_text())
+    names: list[str] = []
+    for s in r["scenes"]:
+        for m in s["methods"]:
+            if m["integrator"] not in names:
+                names.append(m["integrator"])
+    out = [f"Seconds to reach the path tracer's relMSE at {max(r['times'])} s in the caustic box "
+           f"(`*` extrapolated, error ~ 1/t; `{r.get('command', '')}`):", "",
+           "| scene | target relMSE | " + " | ".join(names) + " |", "|---|---:|" + "---:|" * len(names)]
+    for s in r["scenes"]:
+        t = s.get("time_to_target_caustic") or s.get("time_to_target_image")
+        if not t:
+            continue
+        cells = []
+        for n in names:
+            v = t["methods"].get(n)
+            if not v or v.get("seconds") is None:
+                cells.append("not reached")
+            else:
+                cells.append(fmt(v["seconds"]) + ("*" if v.get("extrapolated") else ""))
+        out.append(f"| {scene_name(s)} | {fmt(t['target_relmse'])} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def main() -> int:
+    for arg in sys.argv[1:]:
+        folder = pathlib.Path(arg)
+        r = json.loads((folder / "results.json").read_text())
+        print(curves_table(folder) if "times" in r else compare_table(folder))
+        print()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
