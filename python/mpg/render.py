@@ -61,7 +61,9 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
     elif isinstance(integrator, IntegratorDesc):
         name, params = integrator.type, dict(integrator.params)
     elif isinstance(integrator, dict):
-        params = dict(integrator)
+        # the scene's path-length settings apply unless the dict overrides them
+        params = {k: v for k, v in scene.desc.integrator.params.items() if k in PATH_PARAMS}
+        params.update(integrator)
         name = params.pop("type", "path")
     else:
         raise RenderError(f"integrator must be a name or a dict, got {type(integrator).__name__}")
