@@ -81,17 +81,20 @@ def _zcompare(a: mpg.Image, b: mpg.Image, regions):
 
 
 @pytest.mark.parametrize("integ,scene,spp_chain", [
-    ({"type": "sms_star"}, "sphere_glass.xml", 48),
-    ({"type": "sms", "tau": "TT"}, "slab_glass.xml", 48),
-    ({"type": "sms_star", "max_chain": 4}, "slab_glass.xml", 32),
+    ({"type": "sms_star"}, "sphere_glass.xml", 384),
+    ({"type": "sms", "tau": "TT"}, "slab_glass.xml", 384),
+    ({"type": "sms_star", "max_chain": 4}, "slab_glass.xml", 256),
 ])
 def test_area_light_chains_agree_with_path_tracing(integ, scene, spp_chain, scenes_dir):
-    sc = mpg.load_file(scenes_dir / scene, res="48")
-    ref = mpg.render(sc, integrator="path", spp=2048, seed=11, progress=False)
+    """Chain estimates are heavy-tailed (rare large K x G): at 48x48 and 48 spp
+    one seed was measured 20 % low in the caustic block with z = -10 (another
+    seed: -0.3), so few pixels and many samples are used."""
+    sc = mpg.load_file(scenes_dir / scene, res="24")
+    ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
     img = mpg.render(sc, integrator=dict(integ), spp=spp_chain, seed=12, progress=False)
     assert img.stats["chain_contributions"] > 0 and img.stats["owned_dropped"] >= 0
     assert img.stats["rejected_samples"] == 0
-    regions = [np.s_[:, :]] + [np.s_[i:i + 16, j:j + 16] for i in (0, 16, 32) for j in (0, 16, 32)]
+    regions = [np.s_[:, :]] + [np.s_[i:i + 8, j:j + 8] for i in (0, 8, 16) for j in (0, 8, 16)]
     assert _zcompare(img, ref, regions) < 5
 
 
