@@ -628,6 +628,25 @@ WalkResult ManifoldWalk::solve(ManifoldChain& chain) const {
   return res;
 }
 
+namespace {
+// |d omega / dA| for omega = normalize(x_v - from), x_v moving with the 2x2
+// block X = d(chart of v) / d(orthonormal endpoint chart): the solid angle
+// swept per unit area at the moving endpoint (method-notes Sec. 4).
+double swept_solid_angle(const ManifoldVertex& v, const DVec3& from, const double* X) {
+  using D2 = Dual<2>;
+  V3<D2> x, nrm;
+  chart<D2>(v, D2::var(0.0, 0), D2::var(0.0, 1), x, nrm);
+  const V3<D2> w = normalize(x - lift<D2>(from));
+  DVec3 m0, m1;
+  const D2 comp[3] = {w.x, w.y, w.z};
+  for (int r = 0; r < 3; ++r) {
+    m0[r] = comp[r].d[0] * X[0] + comp[r].d[1] * X[2];
+    m1[r] = comp[r].d[0] * X[1] + comp[r].d[1] * X[3];
+  }
+  return std::abs(glm::dot(glm::cross(m0, m1), DVec3(w.x.v, w.y.v, w.z.v)));
+}
+}  // namespace
+
 bool ManifoldWalk::geometry_area(const ManifoldChain& c, double& G) const {
   const size_t n = c.v.size();
   std::vector<double> A, B, D;
@@ -637,21 +656,7 @@ bool ManifoldWalk::geometry_area(const ManifoldChain& c, double& G) const {
   std::vector<double> R(4 * n, 0.0);
   for (int k = 0; k < 4; ++k) R[4 * (n - 1) + size_t(k)] = -dL[k];
   if (!solve_tridiagonal(A, B, D, R, 2)) return false;
-  // omega_D = normalize(x_1 - x_D) as a function of x_1's chart.
-  using D2 = Dual<2>;
-  V3<D2> x1, n1;
-  chart<D2>(c.v[0], D2::var(0.0, 0), D2::var(0.0, 1), x1, n1);
-  const V3<D2> w = normalize(x1 - lift<D2>(c.xD));
-  // M = d omega / d(chart) (3x2) * X_1 (2x2)
-  const double* X = &R[0];
-  DVec3 m0, m1;
-  const D2 comp[3] = {w.x, w.y, w.z};
-  for (int r = 0; r < 3; ++r) {
-    m0[r] = comp[r].d[0] * X[0] + comp[r].d[1] * X[2];
-    m1[r] = comp[r].d[0] * X[1] + comp[r].d[1] * X[3];
-  }
-  const DVec3 wv(w.x.v, w.y.v, w.z.v);
-  G = std::abs(glm::dot(glm::cross(m0, m1), wv));
+  G = swept_solid_angle(c.v[0], c.xD, &R[0]);  // omega_D moves with x_1
   return std::isfinite(G);
 }
 
@@ -660,22 +665,11 @@ bool ManifoldWalk::geometry_point(const ManifoldChain& c, double& G) const {
   std::vector<double> A, B, D;
   double dL[4], dD[4];
   if (!jacobian(c, A, B, D, dL, dD)) return false;
+  // dX/dx_D = -J^{-1} dC/dx_D; only block 0 of the right-hand side is non-zero.
   std::vector<double> R(4 * n, 0.0);
   for (int k = 0; k < 4; ++k) R[size_t(k)] = -dD[k];
   if (!solve_tridiagonal(A, B, D, R, 2)) return false;
-  using D2 = Dual<2>;
-  V3<D2> xn, nn;
-  chart<D2>(c.v[n - 1], D2::var(0.0, 0), D2::var(0.0, 1), xn, nn);
-  const V3<D2> w = normalize(xn - lift<D2>(c.xL));
-  const double* X = &R[4 * (n - 1)];
-  DVec3 m0, m1;
-  const D2 comp[3] = {w.x, w.y, w.z};
-  for (int r = 0; r < 3; ++r) {
-    m0[r] = comp[r].d[0] * X[0] + comp[r].d[1] * X[2];
-    m1[r] = comp[r].d[0] * X[1] + comp[r].d[1] * X[3];
-  }
-  const DVec3 wv(w.x.v, w.y.v, w.z.v);
-  G = std::abs(glm::dot(glm::cross(m0, m1), wv));
+  G = swept_solid_angle(c.v[n - 1], c.xL, &R[4 * (n - 1)]);  // omega_L moves with x_n
   return std::isfinite(G);
 }
 
