@@ -84,5 +84,32 @@ def main() -> int:
     return 0
 
 
-if __name__ == "__main__":
+if __name__ == "__main__" and "--solver" not in sys.argv:
     sys.exit(main())
+
+
+def solver_table(folder: pathlib.Path) -> str:
+    """Walk success rate and mean Bernoulli count per scene from a `costs` run."""
+    r = json.loads((folder / "results.json").read_text())
+    out = [f"Manifold-walk success and Bernoulli trials (`{r.get('command', '')}`):", "",
+           "| scene | integrator | first-trial success | mean trials K per estimate | capped | "
+           "top walk failures |", "|---|---|---:|---:|---:|---|"]
+    for row in r["rows"]:
+        st = row.get("all_stats") or {}
+        est = st.get("chain_estimates", 0)
+        if not est:
+            continue
+        conv = st.get("chain_converged", 0)
+        contrib = st.get("chain_contributions", 0)
+        trials = st.get("bernoulli_trials", 0)
+        fails = sorted(((v, k[len("walk_fail_"):]) for k, v in st.items()
+                        if k.startswith("walk_fail_") and v), reverse=True)[:2]
+        out.append(f"| {scene_name(row)} | {row['integrator']} | {conv / est:.3f} | "
+                   f"{(1 + trials / contrib) if contrib else float('nan'):.2f} | "
+                   f"{st.get('bernoulli_capped', 0)} | "
+                   + ", ".join(f"{k} {v / est:.2f}" for v, k in fails) + " |")
+    return "\n".join(out)
+
+
+if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "--solver":
+    print(solver_table(pathlib.Path(sys.argv[2])))
