@@ -185,3 +185,31 @@ def test_guards_end_in_named_failures():
     assert not r["converged"]
     for v in r.get("residuals", []):
         assert np.isfinite(v)
+
+
+def _failures(sc, xD, nD, xL, nL, dirs, tau, cfg=None):
+    out = []
+    for d in dirs:
+        r = _core.manifold_walk(sc, xD, nD, xL, nL, list(map(float, d)), tau, cfg or {})
+        assert all(np.isfinite(v) for v in r.get("residuals", []))
+        for v in r.get("vertices", []):
+            assert np.isfinite(v).all()
+        out.append("none" if r["converged"] else r["failure"])
+    return out
+
+
+def test_degenerate_configurations_end_in_named_failures():
+    """Singular Jacobian, a step that no longer moves (stuck) and a vanishing
+    segment each end the walk with their own counted failure, never NaN."""
+    rng = np.random.default_rng(9)
+    # x_D = x_L = centre of a mirror sphere: every point solves it, J = 0
+    sphere = core('<scene version="3.0.0"><shape type="sphere"><float name="radius" value="1"/>'
+                  '<bsdf type="conductor"><string name="material" value="none"/></bsdf></shape></scene>')
+    f = _failures(sphere, [0, 0, 0], [0, 0, 1], [0, 0, 0], [0, 0, 1], rng.normal(size=(100, 3)), "R",
+                  {"threshold": 0.0})
+    assert "singular_jacobian" in f and "stuck" in f
+    # the light 1e-5 above a mirror: the solution's last segment is shorter than min_segment
+    mirror = core(MIRROR)
+    dirs = [[rng.uniform(-1, 1), -1, rng.uniform(-1, 1)] for _ in range(100)]
+    f = _failures(mirror, [0, 1, 0], [0, -1, 0], [1, 1e-5, 0], [0, 1, 0], dirs, "R")
+    assert "vanishing_segment" in f and "none" not in f

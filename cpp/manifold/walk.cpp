@@ -515,6 +515,11 @@ bool ManifoldWalk::reproject(const ManifoldChain& from, const std::vector<DVec3>
     origin = out.v[i].p;
     origin_n = out.v[i].ng;
   }
+  // The last segment, to the light, must not vanish either (x_L on the surface).
+  if (!(glm::length(from.xL - origin) > cfg_.min_segment * scale)) {
+    why = WalkFailure::VanishingSegment;
+    return false;
+  }
   return true;
 }
 
@@ -570,7 +575,11 @@ WalkResult ManifoldWalk::solve(ManifoldChain& chain) const {
         return res;
       }
       WalkFailure why = WalkFailure::None;
-      if (reproject(chain, targets, trial, why) && constraints(trial, Ct)) {
+      // Accept a step that lands on the surfaces and does not blow the residual
+      // up (a backtracking line search on beta; 1.5x tolerates the max-norm's
+      // non-monotone decrease): plain Newton overshoots where the constraints
+      // are far from linear, e.g. with the light near the specular surface.
+      if (reproject(chain, targets, trial, why) && constraints(trial, Ct) && max_abs(Ct) < 1.5 * err) {
         accepted = true;
         chain = trial;
         C = Ct;
