@@ -124,7 +124,7 @@ def _zmax(a, b, regions):
 @pytest.mark.parametrize("scene,params", [
     ("sphere_glass.xml", {}),
     ("slab_glass.xml", {}),
-    ("sphere_glass.xml", {"selective": False}),
+    ("sphere_glass.xml", {"selective": True}),
     ("sphere_glass.xml", {"guide_n": False}),
 ])
 def test_mpg_is_unbiased_against_path_tracing(scene, params, scenes_dir):

@@ -60,7 +60,7 @@ struct ChainParams {
   // recording of sub-path samples for the next training iteration.
   std::shared_ptr<const GuidingState> guide;
   float guide_fraction = 0.5f;     // alpha of Eq. 13
-  bool selective = true;           // chains only where the leaf holds unfiltered samples
+  bool selective = false;          // chains only where the leaf holds unfiltered samples (off: the MPG paper's comparisons)
   bool record = false;             // store SubpathSamples in Stats::subpaths
   bool guide_n = true, guide_tau = true, guide_dir = true;  // ablation switches
 };
