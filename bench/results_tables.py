@@ -16,17 +16,23 @@ def scene_name(s: dict) -> str:
     return sc["name"] if isinstance(sc, dict) else str(sc)
 
 
+def integrator_names(r: dict) -> list[str]:
+    """Integrators of a results.json, in order of first appearance."""
+    names: list[str] = []
+    for s in r["scenes"]:
+        for m in s["methods"]:
+            if m["integrator"] not in names:
+                names.append(m["integrator"])
+    return names
+
+
 def fmt(x: float) -> str:
     return f"{x:.3g}"
 
 
 def compare_table(folder: pathlib.Path) -> str:
     r = json.loads((folder / "results.json").read_text())
-    names: list[str] = []
-    for s in r["scenes"]:
-        for m in s["methods"]:
-            if m["integrator"] not in names:
-                names.append(m["integrator"])
+    names = integrator_names(r)
     out = [f"relMSE whole image / caustic box, mean over {r['seeds']} seeds, {r['time']} s per render "
            f"(`{r.get('command', '')}`):", "",
            "| scene | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
@@ -52,11 +58,7 @@ def compare_table(folder: pathlib.Path) -> str:
 
 def curves_table(folder: pathlib.Path) -> str:
     r = json.loads((folder / "results.json").read_text())
-    names: list[str] = []
-    for s in r["scenes"]:
-        for m in s["methods"]:
-            if m["integrator"] not in names:
-                names.append(m["integrator"])
+    names = integrator_names(r)
     out = [f"Seconds to reach the path tracer's relMSE at {max(r['times'])} s in the caustic box "
            f"(`*` extrapolated, error ~ 1/t; `{r.get('command', '')}`):", "",
            "| scene | target relMSE | " + " | ".join(names) + " |", "|---|---:|" + "---:|" * len(names)]

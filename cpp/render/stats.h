@@ -61,8 +61,6 @@ struct Stats {
             {"guided_trials", double(guided_trials)}, {"chain_inactive", double(chain_inactive)},
             {"subpath_samples", double(subpaths.size())}};
   }
-  // Walk failures by reason (names from walk_failure_name, index = WalkFailure).
-  std::array<uint64_t, 11> failures() const { return walk_failures; }
 };
 
 }  // namespace mpg

@@ -37,7 +37,6 @@ struct BSDF {
     return type == BSDFType::Conductor || type == BSDFType::Dielectric ||
            type == BSDFType::ThinDielectric || type == BSDFType::Null;
   }
-  bool is_null() const { return type == BSDFType::Null; }
 };
 
 struct BSDFSample {

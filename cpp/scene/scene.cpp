@@ -208,16 +208,6 @@ bool Scene::occluded(const Vec3& o, const Vec3& d, float tmin, float tmax) const
   return r.tfar < 0.f;
 }
 
-bool Scene::visible(const Vec3& p, const Vec3& ng_p, const Vec3& q, const Vec3& ng_q) const {
-  Vec3 d = q - p;
-  const Vec3 o = offset_ray_origin(p, ng_p, d);
-  const Vec3 target = offset_ray_origin(q, ng_q, -d);
-  d = target - o;
-  const float len = glm::length(d);
-  if (!(len > 0.f)) return true;
-  return !occluded(o, d / len, 0.f, len * (1.f - 1e-4f));
-}
-
 EmitterSample Scene::sample_emitter(const Vec3& ref, float u_sel, const Vec2& u) const {
   EmitterSample es;
   if (light_dist_.empty()) return es;

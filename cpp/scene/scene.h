@@ -47,8 +47,6 @@ class Scene {
   SurfaceInteraction make_interaction(const Vec3& o, const Vec3& d, float t, unsigned geom,
                                       unsigned prim, float bu, float bv) const;
   bool occluded(const Vec3& o, const Vec3& d, float tmin, float tmax) const;
-  // Shadow ray between two surface points (offsets applied at both ends).
-  bool visible(const Vec3& p, const Vec3& ng_p, const Vec3& q, const Vec3& ng_q) const;
 
   EmitterSample sample_emitter(const Vec3& ref, float u_sel, const Vec2& u) const;
   // Density (solid angle at ref, selection included) that sample_emitter produced
