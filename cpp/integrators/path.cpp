@@ -104,13 +104,10 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     prev_pdf = bs.pdf;
     prev_delta = bs.delta || chain_vertex;
 
-    const Vec3 org = offset_ray_origin(si.p, si.ng, wo);
-    d = wo;
-    st.rays++;
-    SurfaceInteraction next = scene.intersect(org, d, 0.f, kInf);
     ++depth;
 
-    // Russian roulette (Mitsuba 3's rule).
+    // Russian roulette (Mitsuba 3's rule), decided before the ray is traced: a
+    // path it ends costs no intersection.
     const float bmax = max_comp(beta);
     if (!(bmax > 0.f)) break;
     const float q = std::min(bmax * eta * eta, 0.95f);
@@ -119,7 +116,10 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
       if (u_rr >= q) break;
       beta /= q;
     }
-    si = next;
+    const Vec3 org = offset_ray_origin(si.p, si.ng, wo);
+    d = wo;
+    st.rays++;
+    si = scene.intersect(org, d, 0.f, kInf);
   }
   return L;
 }

@@ -1,5 +1,6 @@
 #include "scene/scene.h"
 
+#include <cmath>
 #include <stdexcept>
 
 #include "core/warp.h"
@@ -10,6 +11,33 @@ namespace {
 thread_local std::string g_embree_error;
 void embree_error(void*, RTCError code, const char* str) {
   g_embree_error = std::string("Embree error ") + std::to_string(int(code)) + ": " + (str ? str : "");
+}
+
+// Nearest root of |o + t d - c|^2 = r^2 in (tmin, tmax), in double, with the
+// cancellation-free form of the quadratic (Haines et al., "Precision improvements
+// for ray/sphere intersection", Ray Tracing Gems ch. 7): the discriminant from
+// the perpendicular distance, the second root as c/q. `inv_a` = 1 / |d|^2.
+inline bool hit_sphere(const DirectSphere& s, const Vec3& o, const Vec3& d, double inv_a, float tmin,
+                       float tmax, double& t) {
+  const double fx = double(o.x) - s.cx, fy = double(o.y) - s.cy, fz = double(o.z) - s.cz;
+  const double dx = d.x, dy = d.y, dz = d.z;
+  const double b = -(fx * dx + fy * dy + fz * dz);  // -f.d
+  const double c = fx * fx + fy * fy + fz * fz - s.r2;
+  const double ba = b * inv_a;
+  // r^2 - |f + (b/a) d|^2, times a
+  const double px = fx + ba * dx, py = fy + ba * dy, pz = fz + ba * dz;
+  const double disc = (s.r2 - (px * px + py * py + pz * pz)) / inv_a;
+  if (!(disc >= 0.0)) return false;
+  const double q = b + std::copysign(std::sqrt(disc), b);
+  double t0 = c / q, t1 = q * inv_a;
+  if (!(q != 0.0)) t0 = t1 = ba;
+  if (t0 > t1) std::swap(t0, t1);
+  if (t0 > double(tmin) && t0 < double(tmax)) { t = t0; return true; }
+  if (t1 > double(tmin) && t1 < double(tmax)) { t = t1; return true; }
+  return false;
+}
+inline double inv_len2(const Vec3& d) {
+  return 1.0 / (double(d.x) * d.x + double(d.y) * d.y + double(d.z) * d.z);
 }
 }  // namespace
 
@@ -46,11 +74,22 @@ void Scene::commit() {
   rtcSetSceneBuildQuality(rtc_, RTC_BUILD_QUALITY_HIGH);
   bbox_min = Vec3(kInf);
   bbox_max = Vec3(-kInf);
+  direct_spheres_.clear();
+  rtc_empty_ = true;
+  size_t n_spheres = 0;
+  for (const Shape& s : shapes) n_spheres += s.kind == Shape::Kind::Sphere;
+  const bool direct = n_spheres <= kMaxDirectSpheres;
   for (size_t i = 0; i < shapes.size(); ++i) {
     shapes[i].needs_uv = bsdfs.uses_uv(shapes[i].bsdf);
     const Shape& s = shapes[i];
     RTCGeometry g;
-    if (s.kind == Shape::Kind::Sphere) {
+    if (s.kind == Shape::Kind::Sphere && direct) {
+      direct_spheres_.push_back({double(s.center.x), double(s.center.y), double(s.center.z),
+                                 double(s.radius) * double(s.radius), unsigned(i)});
+      bbox_min = glm::min(bbox_min, s.center - Vec3(s.radius));
+      bbox_max = glm::max(bbox_max, s.center + Vec3(s.radius));
+      continue;
+    } else if (s.kind == Shape::Kind::Sphere) {
       g = rtcNewGeometry(device_, RTC_GEOMETRY_TYPE_SPHERE_POINT);
       float* v = (float*)rtcSetNewGeometryBuffer(g, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT4,
                                                  4 * sizeof(float), 1);
@@ -76,6 +115,7 @@ void Scene::commit() {
     rtcCommitGeometry(g);
     rtcAttachGeometryByID(rtc_, g, unsigned(i));
     rtcReleaseGeometry(g);
+    rtc_empty_ = false;
   }
   rtcCommitScene(rtc_);
   if (!g_embree_error.empty()) throw std::runtime_error(g_embree_error);
@@ -121,7 +161,16 @@ SurfaceInteraction Scene::intersect(const Vec3& o, const Vec3& d, float tmin, fl
   rh.ray.mask = 0xffffffffu; rh.ray.flags = 0; rh.ray.time = 0.f;
   rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
   rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
-  rtcIntersect1(rtc_, &ctx, &rh);
+  if (!rtc_empty_) rtcIntersect1(rtc_, &ctx, &rh);
+  const double inv_a = inv_len2(d);
+  for (const DirectSphere& s : direct_spheres_) {
+    double t;
+    if (hit_sphere(s, o, d, inv_a, tmin, rh.ray.tfar, t)) {
+      rh.ray.tfar = float(t);
+      rh.hit.geomID = s.shape;
+      rh.hit.primID = 0;
+    }
+  }
   if (rh.hit.geomID == RTC_INVALID_GEOMETRY_ID) return si;
   return make_interaction(o, d, rh.ray.tfar, rh.hit.geomID, rh.hit.primID, rh.hit.u, rh.hit.v);
 }
@@ -204,6 +253,11 @@ bool Scene::occluded(const Vec3& o, const Vec3& d, float tmin, float tmax) const
   r.dir_x = d.x; r.dir_y = d.y; r.dir_z = d.z;
   r.tnear = tmin; r.tfar = tmax;
   r.mask = 0xffffffffu; r.flags = 0; r.time = 0.f;
+  double t;
+  const double inv_a = inv_len2(d);
+  for (const DirectSphere& s : direct_spheres_)
+    if (hit_sphere(s, o, d, inv_a, tmin, tmax, t)) return true;
+  if (rtc_empty_) return false;
   rtcOccluded1(rtc_, &ctx, &r);
   return r.tfar < 0.f;
 }

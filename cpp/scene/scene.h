@@ -25,6 +25,11 @@ struct EmitterSample {
   int emitter = -1;
 };
 
+struct DirectSphere {
+  double cx, cy, cz, r2;
+  unsigned shape;
+};
+
 class Scene {
  public:
   Scene();
@@ -64,6 +69,12 @@ class Scene {
  private:
   RTCDevice device_ = nullptr;
   RTCScene rtc_ = nullptr;
+  bool rtc_empty_ = true;  // no geometry in Embree's BVH (skip the call)
+  // A few spheres are intersected analytically (in double) outside Embree: for
+  // scenes with a handful of spheres this is cheaper than Embree's point
+  // primitives and exact to double precision. More spheres go to Embree.
+  std::vector<DirectSphere> direct_spheres_;
+  static constexpr size_t kMaxDirectSpheres = 8;
   bool committed_ = false;
   DiscreteDistribution light_dist_;
   std::vector<int> light_list_;   // selection index -> emitter
