@@ -180,6 +180,7 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
       cp.guide_n = get<bool>(p, "guide_n", true);
       cp.guide_tau = get<bool>(p, "guide_tau", true);
       cp.guide_dir = get<bool>(p, "guide_dir", true);
+      cp.product = get<bool>(p, "product", false);
       if (!(cp.guide_fraction >= 0.f && cp.guide_fraction < 1.f))
         throw std::invalid_argument("guide_fraction must be in [0, 1)");
     }
@@ -537,7 +538,17 @@ PYBIND11_MODULE(_core, m) {
       .def_property_readonly("chains_active", [](const Integrator& i) {
         auto* p = dynamic_cast<const PathIntegrator*>(&i);
         return p != nullptr && p->chains_active();
-      });
+      })
+      .def("trace_photons", [](const Integrator& i, uint64_t count, uint64_t seed) {
+        // Photon initialisation of MPG (supplemental Sec. 2): sub-path samples from photons.
+        auto buf = std::make_shared<SubpathBuffer>();
+        auto* p = dynamic_cast<const PathIntegrator*>(&i);
+        if (p && p->chains()) {
+          py::gil_scoped_release nogil;
+          p->chains()->trace_photons(count, seed, buf->v);
+        }
+        return buf;
+      }, py::arg("count"), py::arg("seed") = 0);
   m.def("make_integrator", &make_integrator, py::arg("scene"), py::arg("type"), py::arg("params"));
 
   py::class_<RenderJob, std::shared_ptr<RenderJob>>(m, "RenderJob")

@@ -2,6 +2,7 @@
 
 #include <chrono>
 
+#include "core/warp.h"
 #include "scene/fresnel.h"
 
 namespace mpg {
@@ -10,6 +11,10 @@ static_assert(size_t(WalkFailure::Count) == std::tuple_size<decltype(Stats::walk
               "Stats::walk_failures must have one entry per WalkFailure");
 
 namespace {
+using Clock = std::chrono::steady_clock;
+uint64_t ns_since(Clock::time_point t0) {
+  return uint64_t(std::chrono::duration_cast<std::chrono::nanoseconds>(Clock::now() - t0).count());
+}
 DVec3 to_d(const Vec3& v) { return DVec3(v.x, v.y, v.z); }
 Vec3 to_f(const DVec3& v) { return Vec3(float(v.x), float(v.y), float(v.z)); }
 
@@ -131,12 +136,14 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     // Learned seed (MPG Sec. 5.5): tau ~ P_e(tau | n), omega_D ~ the vMF mixture of
     // (n, tau); one-sample MIS with the initial distribution below (Eq. 13).
     st.guided_trials++;
+    const auto tg = Clock::now();
     uint16_t bits = 0;
     Vec3 dir;
-    if (!guide->sample_tau(n, rng.next_float(), bits)) return false;
-    const float ul = rng.next_float();
+    const float ut = rng.next_float(), ul = rng.next_float();
     const Vec2 u(rng.next_float(), rng.next_float());
-    if (!guide->sample_dir(n, bits, ul, u, dir)) return false;
+    const bool ok = guide->sample_tau(n, ut, bits) && guide->sample_dir(n, bits, ul, u, dir);
+    st.guide_ns += ns_since(tg);
+    if (!ok) return false;
     tau.assign(size_t(n), 'T');
     for (int i = 0; i < n; ++i)
       if (bits & (1u << i)) tau[size_t(i)] = 'R';
@@ -284,7 +291,7 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
   if (!active_) return Color(0.f);
   const int nmax = max_len(depth, max_depth);
   if (nmax < 1) return Color(0.f);
-  const auto t0 = std::chrono::steady_clock::now();
+  const auto t0 = Clock::now();
   st.chain_estimates++;
   Color result(0.f);
   LightPoint lp;
@@ -296,7 +303,9 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     // The leaf of (x_D, x_L): learned distribution, and selective activation.
     const ChainDistribution* guide = nullptr;
     if (p_.guide && p_.guide->valid()) {
+      const auto tg = Clock::now();
       guide = p_.guide->query(to_f(xD), to_f(lp.p));
+      st.guide_ns += ns_since(tg);
       if (!guide && p_.selective) {
         st.chain_inactive++;
         break;
@@ -321,7 +330,8 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     const double pn = pmf_n_mix(n, nmax, guide, mass);
     // Offset normals of glossy vertices: drawn once, shared by all trials (the
     // admissible set is finite given them; method-notes Sec. 7).
-    std::vector<Vec2> offsets(static_cast<size_t>(n));
+    thread_local std::vector<Vec2> offsets;  // reused: no allocation per estimate
+    offsets.resize(static_cast<size_t>(n));
     for (auto& o : offsets) o = Vec2(rng.next_float(), rng.next_float());
     const ChainDistribution* seed_guide = (guide && (p_.guide_tau || p_.guide_dir)) ? guide : nullptr;
     if (!trial(xD, nD, lp, n, offsets, seed_guide, rng, chain, tau, st)) break;
@@ -357,6 +367,7 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     ManifoldChain other;
     std::string tau2;
     bool capped = false;
+    const auto tb = Clock::now();
     const int K = bernoulli_count(
         [&] {
           st.bernoulli_trials++;
@@ -364,6 +375,7 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
                  glm::length(glm::normalize(other.v[0].p - xD) - w_star) < p_.uniqueness_threshold;
         },
         p_.max_trials, capped);
+    st.bernoulli_ns += ns_since(tb);
     if (capped) st.bernoulli_capped++;
     if (p_.record && !capped) {
       // Sub-path sample for the next training iteration: w = T <1/P> (MPG Eq. 9).
@@ -373,6 +385,9 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
       ss.dir[0] = e.x;
       ss.dir[1] = e.y;
       ss.weight = luminance(kap * Le) * float(G) * float(K);
+      // Product sampling with the separator's BSDF (MPG Eq. 14): the weight also
+      // carries rho(omega_i, omega_D*) (here with |cos theta_D|, the integrand's factor).
+      if (p_.product) ss.weight *= luminance(f);
       ss.n = uint8_t(n);
       ss.tau = tau_bits(tau_star.data(), n);
       ss.flags = 0;
@@ -388,9 +403,91 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     result = f * kap * Le * float(scale);
     st.chain_contributions++;
   } while (false);
-  st.chain_ns += uint64_t(std::chrono::duration_cast<std::chrono::nanoseconds>(
-      std::chrono::steady_clock::now() - t0).count());
+  st.chain_ns += ns_since(t0);
   return result;
+}
+
+uint64_t ChainEstimator::trace_photons(uint64_t count, uint64_t seed,
+                                       std::vector<SubpathSample>& out) const {
+  if (!active_) return 0;
+  const int nmax = std::min(p_.max_chain, 16);
+  for (uint64_t i = 0; i < count; ++i) {
+    PCG32 rng = make_stream(seed, 0x70686f746f6eULL /* "photon" */, i, 0);
+    // Emission: light by power, position by area, direction cosine-weighted
+    // (area), uniform (point), uniform in the cone (spot). flux = Le cos / pdf.
+    float usel = rng.next_float();
+    const size_t k = light_dist_.sample(usel);
+    const Emitter& e = scene_.emitters[size_t(chain_lights_[k])];
+    const float psel = light_dist_.pmf(k);
+    Vec3 xL, d;
+    Color flux;
+    if (e.type == Emitter::Type::Area) {
+      const Shape& s = scene_.shapes[size_t(e.shape)];
+      Vec3 n;
+      s.sample_position(Vec2(rng.next_float(), rng.next_float()), xL, n);
+      const Vec3 dl = warp::square_to_cosine_hemisphere(Vec2(rng.next_float(), rng.next_float()));
+      d = Frame(n).to_world(dl);
+      flux = e.value * (kPi * s.area / psel);
+    } else if (e.type == Emitter::Type::Point) {
+      xL = e.position;
+      d = warp::square_to_uniform_sphere(Vec2(rng.next_float(), rng.next_float()));
+      flux = e.value * (4.f * kPi / psel);
+    } else {  // spot: uniform in the cone of cos_cutoff, weighted by the falloff
+      xL = e.position;
+      const Vec3 dl = warp::square_to_uniform_cone(Vec2(rng.next_float(), rng.next_float()), e.cos_cutoff);
+      d = e.frame.to_world(dl);
+      flux = e.value * (e.spot_falloff(dl) / (warp::uniform_cone_pdf(dl, e.cos_cutoff) * psel));
+    }
+    if (is_black(flux)) continue;
+    // Walk through chain vertices, sampling each one's BSDF (R/T by Fresnel at
+    // smooth dielectrics), until the first separator.
+    Vec3 o = xL;
+    Vec3 prev_ng(0.f);
+    bool from_light = true;
+    Vec3 last(0.f);
+    char types[16];
+    int n = 0;
+    for (;;) {
+      const Vec3 org = from_light ? o : offset_ray_origin(o, prev_ng, d);
+      const SurfaceInteraction si = scene_.intersect(org, d, from_light ? 1e-4f : 0.f, kInf);
+      from_light = false;
+      if (!si.valid) break;
+      const Shape& shape = scene_.shapes[size_t(si.shape)];
+      if (shape.emitter >= 0) break;
+      const BSDFContext ctx = scene_.bsdfs.resolve(shape.bsdf, si);
+      if (!ctx.leaf) break;
+      const bool chain_vertex = is_chain_shape(si.shape) && is_chain_bsdf(*ctx.leaf);
+      if (!chain_vertex) {
+        if (ctx.leaf->is_delta() || n == 0) break;  // not a separator, or direct light
+        SubpathSample ss;
+        for (int a = 0; a < 3; ++a) { ss.xD[a] = si.p[a]; ss.xL[a] = xL[a]; }
+        const Vec2 enc = oct_encode(glm::normalize(last - si.p));
+        ss.dir[0] = enc.x;
+        ss.dir[1] = enc.y;
+        char tau[16];
+        for (int j = 0; j < n; ++j) tau[j] = types[n - 1 - j];  // x_D -> x_L order
+        ss.n = uint8_t(n);
+        ss.tau = tau_bits(tau, n);
+        ss.flags = 0;
+        ss.weight = luminance(flux) / float(count);
+        if (std::isfinite(ss.weight) && ss.weight > 0.f) out.push_back(ss);
+        break;
+      }
+      if (n == nmax) break;
+      Vec3 wo;
+      const float u1 = rng.next_float();
+      const Vec2 u2(rng.next_float(), rng.next_float());
+      const BSDFSample bs = scene_.bsdfs.sample(ctx, si.wi, u1, u2, wo);
+      if (!(bs.pdf > 0.f) || is_black(bs.weight)) break;
+      flux *= bs.weight;
+      types[n++] = bs.transmission ? 'T' : 'R';
+      last = si.p;
+      o = si.p;
+      prev_ng = si.ng;
+      d = wo;
+    }
+  }
+  return count;
 }
 
 }  // namespace mpg

@@ -62,6 +62,7 @@ struct ChainParams {
   float guide_fraction = 0.5f;     // alpha of Eq. 13
   bool selective = false;          // chains only where the leaf holds unfiltered samples (off: the MPG paper's comparisons)
   bool record = false;             // store SubpathSamples in Stats::subpaths
+  bool product = false;            // product sampling with the separator's BSDF (MPG Eq. 14)
   bool guide_n = true, guide_tau = true, guide_dir = true;  // ablation switches
 };
 
@@ -86,6 +87,14 @@ class ChainEstimator {
     return (b.type == BSDFType::RoughDielectric || b.type == BSDFType::RoughConductor) &&
            std::max(b.mf.ax, b.mf.ay) < p_.walk.glossy_threshold;
   }
+
+  // Photon initialisation (MPG supplemental Sec. 2): trace `count` photons from
+  // the chain emitters through chain vertices; each that lands on a separator
+  // after 1..max_chain chain vertices becomes a sub-path sample (x_D = landing
+  // point, x_L = emission point, omega_D toward the last chain vertex, n, tau
+  // in x_D -> x_L order) weighted by its flux (supplemental Eq. 4).
+  // Deterministic for a given seed. Returns the number of photons traced.
+  uint64_t trace_photons(uint64_t count, uint64_t seed, std::vector<SubpathSample>& out) const;
 
   // Contribution at x_D (already multiplied by f_s * |cos|); `wi` toward the camera.
   Color estimate(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,

@@ -29,6 +29,8 @@ struct Stats {
   uint64_t bernoulli_capped = 0;     // estimates stopped by max_trials (biased, counted)
   uint64_t owned_dropped = 0;        // path-traced chain paths dropped (owned by the estimator)
   uint64_t chain_ns = 0;             // time in chain estimation (summed over threads)
+  uint64_t bernoulli_ns = 0;         // of which: the Bernoulli trials estimating 1/P
+  uint64_t guide_ns = 0;             // of which: guiding (STree query, sampling n, tau, omega from a leaf)
   std::array<uint64_t, 11> walk_failures{};  // by WalkFailure
   // guiding (mpg)
   uint64_t guided_trials = 0;        // trials whose seed came from the learned distribution
@@ -43,6 +45,7 @@ struct Stats {
     chain_estimates += o.chain_estimates; chain_converged += o.chain_converged;
     chain_contributions += o.chain_contributions; bernoulli_trials += o.bernoulli_trials;
     bernoulli_capped += o.bernoulli_capped; owned_dropped += o.owned_dropped; chain_ns += o.chain_ns;
+    bernoulli_ns += o.bernoulli_ns; guide_ns += o.guide_ns;
     for (size_t i = 0; i < walk_failures.size(); ++i) walk_failures[i] += o.walk_failures[i];
     guided_trials += o.guided_trials;
     chain_inactive += o.chain_inactive;
@@ -58,6 +61,7 @@ struct Stats {
             {"chain_contributions", double(chain_contributions)},
             {"bernoulli_trials", double(bernoulli_trials)}, {"bernoulli_capped", double(bernoulli_capped)},
             {"owned_dropped", double(owned_dropped)}, {"chain_ns", double(chain_ns)},
+            {"bernoulli_ns", double(bernoulli_ns)}, {"guide_ns", double(guide_ns)},
             {"guided_trials", double(guided_trials)}, {"chain_inactive", double(chain_inactive)},
             {"subpath_samples", double(subpaths.size())}};
   }
