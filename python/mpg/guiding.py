@@ -25,8 +25,14 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     frac = float(params.pop("training_fraction", 0.3))
     c = float(params.pop("stree_c", 1.0))
     eps = float(params.pop("stree_epsilon", 0.1))
+    init = str(params.pop("init", "surface"))
+    n_photons = int(params.pop("photons", 200_000))
     if not 0.0 <= frac < 1.0:
         raise RenderError(f"training_fraction must be in [0, 1), got {frac}")
+    if init not in ("surface", "photon"):
+        raise RenderError(f"init must be 'surface' or 'photon', got '{init}'")
+    if n_photons < 1:
+        raise RenderError(f"photons must be >= 1, got {n_photons}")
     core = scene.core
     bmin, bmax = core.bbox
     show = (sys.stderr.isatty() if progress is None else progress)
@@ -39,9 +45,26 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     leaves = 0
     # Effects follow the scene: no caster or no chain emitter -> no training at all.
     probe = _core.make_integrator(core, "mpg", dict(params, record=True))
+    photon_samples = 0
+    seconds_photons = 0.0
     if probe.chains_active and frac > 0.0:
         budget_spp = None if spp is None else max(0, int(frac * spp))
         budget_t = None if time is None else frac * time
+        if init == "photon":
+            # Initial distribution from photons (supplemental Sec. 2) instead of
+            # the surface-uniform seeds alone; flux as the weight (Eq. 4).
+            buf = probe.trace_photons(n_photons, seed)
+            photon_samples = len(buf)
+            if photon_samples > 0:
+                state = _core.GuidingState()
+                state.build_from([buf], bmin, bmax, c=c, epsilon=eps, threads=threads or 2)
+                build_seconds += state.build_seconds
+                leaves = state.num_leaves
+                guide = state
+            seconds_photons = _time.monotonic() - t0
+            if show:
+                sys.stderr.write(f"mpg: {n_photons} photons -> {photon_samples} sub-path samples, "
+                                 f"{leaves} leaves, {seconds_photons:.2f} s\n")
         k = 1
         while True:
             used_t = _time.monotonic() - t0
@@ -68,9 +91,12 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                 leaves = state.num_leaves
                 guide = state
             if show:
-                sys.stderr.write(f"\rmpg: training iteration {iterations}: {k} spp, "
-                                 f"{samples_last} sub-path samples, {leaves} leaves, "
-                                 f"{_time.monotonic() - t0:.1f} s")
+                el = _time.monotonic() - t0
+                left = (f", {max(0.0, budget_t - el):.1f} s of training left" if budget_t is not None
+                        else f", {max(0, budget_spp - spp_train)} spp of training left")
+                sys.stderr.write(f"\rmpg: training iteration {iterations}: {k} spp "
+                                 f"({spp_train} in all), {samples_last} sub-path samples, "
+                                 f"{leaves} leaves, {el:.1f} s{left}   ")
                 sys.stderr.flush()
             k *= 2
         if show:
@@ -90,6 +116,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["seconds_training"] = seconds_training
     st["seconds_guide_build"] = build_seconds
     st["subpath_samples"] = samples_last
+    st["init"] = init
+    st["photon_samples"] = photon_samples
+    st["seconds_photons"] = seconds_photons
     st["guide_leaves"] = leaves
     st["guide_bytes"] = samples_last * _core.SUBPATH_SAMPLE_BYTES
     st["seconds"] = _time.monotonic() - t0

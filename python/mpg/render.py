@@ -21,7 +21,9 @@ PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
                 "threshold", "max_iterations", "form", "glossy_threshold"}
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
-                "guide_dir", "training_fraction", "stree_c", "stree_epsilon"}
+                "guide_dir", "training_fraction", "stree_c", "stree_epsilon", "stree_filter",
+                "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons"}
+BOOL_PARAMS = {"hide_emitters", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
 # The SMS paper's integrators, with their parameter names, map onto `sms`.
 SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
@@ -98,10 +100,30 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
     for k in ("max_depth", "rr_depth"):
         if k in core_params:
             core_params[k] = int(core_params[k])
-    if "hide_emitters" in core_params:
-        v = core_params["hide_emitters"]
-        core_params["hide_emitters"] = v.lower() == "true" if isinstance(v, str) else bool(v)
+    for k in BOOL_PARAMS & core_params.keys():
+        core_params[k] = _as_bool(k, core_params[k])
+    for k in ("stree_threshold", "knn_k", "photons"):
+        if k in core_params:
+            try:
+                core_params[k] = int(core_params[k])
+            except (TypeError, ValueError):
+                raise RenderError(f"parameter {k} must be an integer, got '{core_params[k]}'") from None
+    dropped = sorted(k for k in params if k not in allowed and k != "type")
+    if dropped:
+        warnings.append(f"integrator '{name}' ignores parameter(s) {', '.join(dropped)}")
     return name, core_params, warnings
+
+
+def _as_bool(name: str, v) -> bool:
+    """A boolean parameter from a bool, a number or the strings true/false/1/0/yes/no."""
+    if isinstance(v, str):
+        t = v.strip().lower()
+        if t in ("true", "1", "yes", "on"):
+            return True
+        if t in ("false", "0", "no", "off"):
+            return False
+        raise RenderError(f"parameter {name} must be true or false, got '{v}'")
+    return bool(v)
 
 
 def _sms_paper_params(scene: Scene, name: str, params: dict, warnings: list[str]) -> dict:

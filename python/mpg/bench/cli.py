@@ -34,7 +34,8 @@ def _common(p: argparse.ArgumentParser, scenes: bool = True) -> None:
                        "'series:NAME' (a series of scenes/eval), or 'default' (the default "
                        f"suite: {' '.join(DEFAULT_SUITE)})")
         p.add_argument("--integrators", nargs="+", default=DEFAULT_INTEGRATORS, metavar="ENTRY",
-                       help="mpg integrator names, or mitsuba:NAME[@VARIANT]; default "
+                       help="mpg integrator names, with parameters as NAME/key=value/... "
+                       "(e.g. mpg/init=photon), or mitsuba:NAME[@VARIANT]; default "
                        f"{' '.join(DEFAULT_INTEGRATORS)}")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="override a <default> of every scene (e.g. res=64); repeatable")

@@ -6,8 +6,10 @@ absent ones (documented in docs/results.md):
 
     spp, spp_training        samples per pixel: total (training included) and training
     seconds, seconds_training  wall time: total and in training
-    seconds_guide            time querying the guiding distributions
-    seconds_bernoulli        time in Bernoulli trials (reciprocal-probability estimation)
+    seconds_guide            time querying the guiding distributions (STree query, sampling
+                             n, tau and omega from a leaf; core timer guide_ns)
+    guide_overhead           seconds_guide / CPU time of the rendering part (wall x threads)
+    seconds_bernoulli        time in Bernoulli trials (reciprocal-probability estimation; bernoulli_ns)
     seconds_specular         total time in specular-chain sampling
     subpath_samples          sub-path samples collected for training
     activation_rate          fraction of separator vertices where chain sampling ran
@@ -39,6 +41,7 @@ COLUMNS = [
     ("seconds_guide", "guide (s)"),
     ("seconds_bernoulli", "Bernoulli trials (s)"),
     ("seconds_specular", "specular total (s)"),
+    ("guide_overhead", "guide / render CPU"),
     ("subpath_samples", "sub-path samples"),
     ("activation_rate", "activation rate"),
     ("bernoulli_trials", "Bernoulli trials (count)"),
@@ -51,6 +54,16 @@ def derived(st: dict[str, Any]) -> dict[str, Any]:
     st = dict(st)
     if st.get("seconds_specular") is None and st.get("chain_ns") is not None:
         st["seconds_specular"] = float(st["chain_ns"]) * 1e-9
+    if st.get("seconds_bernoulli") is None and st.get("bernoulli_ns") is not None:
+        st["seconds_bernoulli"] = float(st["bernoulli_ns"]) * 1e-9
+    if st.get("seconds_guide") is None and st.get("guide_ns") and st.get("integrator") == "mpg":
+        st["seconds_guide"] = float(st["guide_ns"]) * 1e-9
+    if st.get("seconds_guide") is not None:
+        # guiding overhead: guide CPU time over the rendering part's CPU time
+        wall = float(st.get("seconds") or 0.0) - float(st.get("seconds_training") or 0.0)
+        threads = int(st.get("threads") or 0) or (os.cpu_count() or 1)
+        if wall > 0:
+            st["guide_overhead"] = float(st["seconds_guide"]) / (wall * threads)
     return st
 
 
@@ -129,7 +142,9 @@ def _plot(path: str, results: dict[str, Any]) -> None:
     labels, parts = [], {"guide": [], "Bernoulli trials": [], "other specular": [], "other": []}
     for r in rows:
         st = r["stats"]
-        tot = float(st.get("seconds") or 0.0)
+        # CPU seconds: the specular timers are summed over threads
+        threads = int(r.get("all_stats", {}).get("threads") or 0) or (os.cpu_count() or 1)
+        tot = float(st.get("seconds") or 0.0) * threads
         g = float(st.get("seconds_guide") or 0.0)
         b = float(st.get("seconds_bernoulli") or 0.0)
         s = float(st.get("seconds_specular") or 0.0)
@@ -144,7 +159,7 @@ def _plot(path: str, results: dict[str, Any]) -> None:
         bottom = [a + b for a, b in zip(bottom, vals)]
     ax.set_xticks(range(len(rows)))
     ax.set_xticklabels(labels, fontsize=7)
-    ax.set_ylabel("seconds")
+    ax.set_ylabel("CPU seconds (wall x threads)")
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

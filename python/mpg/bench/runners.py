@@ -36,6 +36,7 @@ class IntegratorSpec:
     backend: str          # 'mpg' | 'mitsuba'
     name: str
     variant: str | None = None
+    params: tuple[tuple[str, str], ...] = ()   # mpg entries: NAME/key=value/key=value
 
     @property
     def label(self) -> str:
@@ -54,7 +55,14 @@ def parse_integrator(text: str) -> IntegratorSpec:
         return IntegratorSpec(t, "mitsuba", name, variant or None)
     if ":" in t or "@" in t:
         raise BenchError(f"'{t}': unknown backend (mpg integrators by name, or mitsuba:NAME)")
-    return IntegratorSpec(t, "mpg", t)
+    name, *kvs = t.split("/")
+    params = []
+    for kv in kvs:
+        k, eq, v = kv.partition("=")
+        if not k or not eq:
+            raise BenchError(f"'{t}': expected NAME/key=value/..., e.g. mpg/init=photon")
+        params.append((k, v))
+    return IntegratorSpec(t, "mpg", name, None, tuple(params))
 
 
 def mitsuba_importable() -> bool:
@@ -98,7 +106,10 @@ def run_mpg(spec: IntegratorSpec, scene: BenchScene, *, time: float | None = Non
 
     s = _mpg_scene(scene)
     _ = s.core                          # build the BVH before the clock (as mpg.render does)
-    img = mpg.render(s, integrator=spec.name, spp=spp, time=time, seed=seed, threads=threads,
+    integ: Any = spec.name
+    if spec.params:
+        integ = dict(spec.params, type=spec.name)
+    img = mpg.render(s, integrator=integ, spp=spp, time=time, seed=seed, threads=threads,
                      progress=False)
     if img.spp == 0:
         raise BenchError(f"{spec.text} on {scene.label}: no pass finished within {time} s")
