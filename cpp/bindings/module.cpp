@@ -570,7 +570,28 @@ PYBIND11_MODULE(_core, m) {
 
   py::class_<SubpathBuffer, std::shared_ptr<SubpathBuffer>>(m, "SubpathBuffer")
       .def("__len__", [](const SubpathBuffer& b) { return b.v.size(); })
-      .def_property_readonly("nbytes", [](const SubpathBuffer& b) { return b.v.size() * sizeof(SubpathSample); });
+      .def_property_readonly("nbytes", [](const SubpathBuffer& b) { return b.v.size() * sizeof(SubpathSample); })
+      .def("arrays", [](const SubpathBuffer& b) {
+        // The samples as numpy arrays (tests, inspection): xD, xL, dir (decoded), n, tau, weight.
+        const ssize_t k = ssize_t(b.v.size());
+        FArray xd(std::vector<ssize_t>{k, 3}), xl(std::vector<ssize_t>{k, 3}), dir(std::vector<ssize_t>{k, 3});
+        py::array_t<int> n(k);
+        py::array_t<uint16_t> tau(k);
+        FArray w(k);
+        for (ssize_t j = 0; j < k; ++j) {
+          const SubpathSample& s = b.v[size_t(j)];
+          const Vec3 d = oct_decode(Vec2(s.dir[0], s.dir[1]));
+          for (int a = 0; a < 3; ++a) {
+            xd.mutable_at(j, a) = s.xD[a]; xl.mutable_at(j, a) = s.xL[a]; dir.mutable_at(j, a) = d[a];
+          }
+          n.mutable_at(j) = s.n;
+          tau.mutable_at(j) = s.tau;
+          w.mutable_at(j) = s.weight;
+        }
+        py::dict r;
+        r["xD"] = xd; r["xL"] = xl; r["dir"] = dir; r["n"] = n; r["tau"] = tau; r["weight"] = w;
+        return r;
+      });
 
   py::class_<GuidingState, std::shared_ptr<GuidingState>>(m, "GuidingState")
       .def(py::init<>())
