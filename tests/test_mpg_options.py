@@ -150,3 +150,19 @@ def test_bench_entries_take_parameters():
     assert parse_integrator("path").params == ()
     with pytest.raises(BenchError, match="key=value"):
         parse_integrator("mpg/init")
+
+
+def test_largest_chain_estimate_is_reported():
+    """The stats name the largest single chain estimate and its factors. A
+    planar mirror has one solution (n = 1, P(n) = 1, K a whole number >= 1),
+    and the largest estimate is at least the brightest pixel's chain part (a
+    pixel's value is a mean over its samples)."""
+    sc = mpg.load_string(mirror_scene())
+    img = mpg.render(sc, integrator={"type": "sms", "tau": "R"}, spp=8, seed=1, progress=False)
+    st = img.stats
+    assert st["max_chain_K"] >= 1 and st["max_chain_K"] == int(st["max_chain_K"])
+    assert st["max_chain_n"] == 1 and st["max_chain_guided"] == 0
+    assert st["max_chain_G"] > 0 and st["max_chain_pn"] == 1
+    direct = mpg.render(sc, integrator="path", spp=8, seed=1, progress=False)
+    chain_part = (img.rgb - direct.rgb).mean(-1)     # the mirror term (path tracing misses it)
+    assert st["max_chain_value"] >= 0.9 * chain_part.max() > 0

@@ -402,6 +402,10 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     }
     result = f * kap * Le * float(scale);
     st.chain_contributions++;
+    if (const double v = double(luminance(result)); v > st.max_chain_value) {
+      st.max_chain_value = v; st.max_chain_K = K; st.max_chain_G = G; st.max_chain_pn = pn;
+      st.max_chain_n = n; st.max_chain_guided = guide ? 1.0 : 0.0;
+    }
   } while (false);
   st.chain_ns += ns_since(t0);
   return result;

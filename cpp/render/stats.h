@@ -36,6 +36,9 @@ struct Stats {
   uint64_t guided_trials = 0;        // trials whose seed came from the learned distribution
   uint64_t chain_inactive = 0;       // separators skipped by selective activation
   std::vector<SubpathSample> subpaths;  // recorded in training passes
+  // the largest chain estimate (luminance) and its factors: where the heavy tail comes from
+  double max_chain_value = 0.0, max_chain_K = 0.0, max_chain_G = 0.0, max_chain_pn = 0.0,
+         max_chain_n = 0.0, max_chain_guided = 0.0;
 
   void merge(const Stats& o) {
     samples += o.samples; camera_rays += o.camera_rays; rays += o.rays;
@@ -50,6 +53,10 @@ struct Stats {
     guided_trials += o.guided_trials;
     chain_inactive += o.chain_inactive;
     subpaths.insert(subpaths.end(), o.subpaths.begin(), o.subpaths.end());
+    if (o.max_chain_value > max_chain_value) {
+      max_chain_value = o.max_chain_value; max_chain_K = o.max_chain_K; max_chain_G = o.max_chain_G;
+      max_chain_pn = o.max_chain_pn; max_chain_n = o.max_chain_n; max_chain_guided = o.max_chain_guided;
+    }
   }
   std::map<std::string, double> to_map() const {
     return {{"samples", double(samples)},           {"camera_rays", double(camera_rays)},
@@ -63,7 +70,10 @@ struct Stats {
             {"owned_dropped", double(owned_dropped)}, {"chain_ns", double(chain_ns)},
             {"bernoulli_ns", double(bernoulli_ns)}, {"guide_ns", double(guide_ns)},
             {"guided_trials", double(guided_trials)}, {"chain_inactive", double(chain_inactive)},
-            {"subpath_samples", double(subpaths.size())}};
+            {"subpath_samples", double(subpaths.size())},
+            {"max_chain_value", max_chain_value}, {"max_chain_K", max_chain_K},
+            {"max_chain_G", max_chain_G}, {"max_chain_pn", max_chain_pn},
+            {"max_chain_n", max_chain_n}, {"max_chain_guided", max_chain_guided}};
   }
 };
 

@@ -291,8 +291,13 @@ def render(
                 break
             acc += r["sum"]
             acc2 += r["sum_sq"]
-            for key, v in r["stats"].items():
-                stats[key] = stats.get(key, 0.0) + v
+            rs = r["stats"]
+            if rs.get("max_chain_value", 0.0) > stats.get("max_chain_value", 0.0):
+                # the largest single chain estimate and its factors (K, G, P(n), ...)
+                stats.update({k: v for k, v in rs.items() if k.startswith("max_chain_")})
+            for key, v in rs.items():
+                if not key.startswith("max_chain_"):
+                    stats[key] = stats.get(key, 0.0) + v
             done += k
             passes += 1
             pass_seconds_per_spp = r["seconds"] / k
@@ -325,7 +330,7 @@ def render(
         "rejected_samples": rejected,
         "samples_per_second": stats.get("samples", 0.0) / elapsed if elapsed > 0 else 0.0,
         "warnings": list(scene.warnings) + warnings,
-        **{k: int(v) for k, v in stats.items()},
+        **{k: (float(v) if k.startswith("max_chain_") else int(v)) for k, v in stats.items()},
     }
     return Image(rgb=mean.astype(np.float32), variance=var.astype(np.float32), spp=done,
                  stats=out_stats)
