@@ -14,6 +14,8 @@ absent ones (documented in docs/results.md):
     subpath_samples          sub-path samples collected for training
     activation_rate          fraction of separator vertices where chain sampling ran
     bernoulli_trials         number of extra trials spent estimating 1/P
+    max_chain_K, max_chain_G the Bernoulli count K and geometry term G of the largest single
+                             chain estimate of the render (where the heavy tail comes from)
 
 seconds_guide / seconds_bernoulli / seconds_specular are CPU seconds summed over the
 render threads (what a thread can measure); `seconds` is wall time. When an
@@ -46,6 +48,8 @@ COLUMNS = [
     ("activation_rate", "activation rate"),
     ("bernoulli_trials", "Bernoulli trials (count)"),
     ("samples_per_second", "samples/s"),
+    ("max_chain_K", "largest estimate: K"),
+    ("max_chain_G", "largest estimate: G"),
 ]
 STAT_KEYS = [k for k, _ in COLUMNS] + ["spp_training"]
 
