@@ -8,41 +8,66 @@
 namespace mpg {
 
 namespace {
-// Distance from each direction to its nearest other one (chordal), by a sweep
-// over directions sorted along x: O(m log m) plus the window checks.
+// Exact distance from each direction to its nearest other one (chordal,
+// Eq. 12's sigma_i): directions sorted along the axis of largest spread, and
+// each scans both ways until the gap along that axis alone exceeds the best
+// distance found. Bounded by the neighbours within sigma_i along one axis
+// (O(m log m) for spread-out or clustered directions; exact in every case).
 std::vector<float> nearest_distances(const std::vector<Vec3>& d) {
   const size_t m = d.size();
   std::vector<float> best(m, kInf);
-  std::vector<size_t> order(m);
-  for (size_t i = 0; i < m; ++i) order[i] = i;
-  std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return d[a].x < d[b].x; });
-  for (size_t oi = 0; oi < m; ++oi) {
-    const size_t i = order[oi];
-    for (size_t oj = oi + 1; oj < m; ++oj) {
-      const size_t j = order[oj];
-      const float dx = d[j].x - d[i].x;
-      if (dx >= best[i] && dx >= best[j]) break;
-      const float dist = glm::length(d[i] - d[j]);
-      best[i] = std::min(best[i], dist);
-      best[j] = std::min(best[j], dist);
+  if (m < 2) return best;
+  Vec3 lo(kInf), hi(-kInf);
+  for (const Vec3& v : d) {
+    lo = glm::min(lo, v);
+    hi = glm::max(hi, v);
+  }
+  const Vec3 ext = hi - lo;
+  const int ax = ext.x >= ext.y && ext.x >= ext.z ? 0 : (ext.y >= ext.z ? 1 : 2);
+  struct Item { float key; uint32_t i; };
+  std::vector<Item> order(m);
+  for (size_t i = 0; i < m; ++i) order[i] = {d[i][ax], uint32_t(i)};
+  std::sort(order.begin(), order.end(), [](const Item& a, const Item& b) {
+    return a.key < b.key || (a.key == b.key && a.i < b.i);
+  });
+  std::vector<Vec3> p(m);  // sorted copy: the scans read memory in order
+  for (size_t o = 0; o < m; ++o) p[o] = d[order[o].i];
+  for (size_t o = 0; o < m; ++o) {
+    float b2 = kInf;  // squared best distance
+    const Vec3 q = p[o];
+    const float k = order[o].key;
+    for (size_t j = o + 1; j < m; ++j) {
+      const float g = order[j].key - k;
+      if (g * g >= b2) break;
+      const Vec3 t = p[j] - q;
+      b2 = std::min(b2, glm::dot(t, t));
     }
+    for (size_t j = o; j-- > 0;) {
+      const float g = k - order[j].key;
+      if (g * g >= b2) break;
+      const Vec3 t = p[j] - q;
+      b2 = std::min(b2, glm::dot(t, t));
+    }
+    best[order[o].i] = std::sqrt(b2);
   }
   return best;
 }
 }  // namespace
 
-void ChainDistribution::build(const std::vector<SubpathSample>& samples) {
+void ChainDistribution::build(SampleSpan a, SampleSpan b) {
   std::vector<float> wn(kMaxN, 0.f);
   std::vector<std::map<uint16_t, float>> wt(kMaxN);
   std::map<std::pair<int, uint16_t>, std::pair<std::vector<Vec3>, std::vector<float>>> groups;
-  for (const SubpathSample& s : samples) {
-    if (s.n < 1 || s.n > kMaxN || !(s.weight > 0.f) || !std::isfinite(s.weight)) continue;
+  auto add = [&](const SubpathSample& s) {
+    if (s.n < 1 || s.n > kMaxN || !(s.weight > 0.f) || !std::isfinite(s.weight)) return;
     wn[size_t(s.n - 1)] += s.weight;                    // Eq. 10
     wt[size_t(s.n - 1)][s.tau] += s.weight;             // Eq. 11
     auto& g = groups[{int(s.n), s.tau}];
     g.first.push_back(oct_decode(Vec2(s.dir[0], s.dir[1])));
     g.second.push_back(s.weight);
-  }
+  };
+  for (const SubpathSample& s : a) add(s);
+  for (const SubpathSample& s : b) add(s);
   n_dist_.build(wn);
   tau_keys_.assign(kMaxN, {});
   tau_dist_.assign(kMaxN, DiscreteDistribution());

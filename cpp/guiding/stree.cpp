@@ -1,10 +1,39 @@
 #include "guiding/stree.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
-#include <future>
+#include <condition_variable>
+#include <functional>
+#include <mutex>
+#include <stdexcept>
+#include <thread>
 
 namespace mpg {
+
+STreeFilter parse_stree_filter(const std::string& s) {
+  if (s == "nearest") return STreeFilter::Nearest;
+  if (s == "stochastic") return STreeFilter::Stochastic;
+  if (s == "none") return STreeFilter::None;
+  throw std::invalid_argument("unknown stree_filter '" + s + "' (expected nearest, stochastic or none)");
+}
+
+const char* stree_filter_name(STreeFilter f) {
+  switch (f) {
+    case STreeFilter::Nearest: return "nearest";
+    case STreeFilter::Stochastic: return "stochastic";
+    case STreeFilter::None: return "none";
+  }
+  return "?";
+}
+
+void Cube6::fit(const Vec3& bmin, const Vec3& bmax) {
+  // "Cubified" scene bounds: one scale for all axes.
+  const Vec3 ext = bmax - bmin;
+  const float side = std::max(1e-6f, max_comp(ext)) * 1.0001f;
+  origin = 0.5f * (bmin + bmax) - Vec3(0.5f * side);
+  scale = 1.f / side;
+}
 
 struct STree::BuildNode {
   std::unique_ptr<BuildNode> child[2];
@@ -14,55 +43,97 @@ struct STree::BuildNode {
   bool is_leaf = false;
 };
 
-void STree::normalise(const Vec3& xD, const Vec3& xL, float out[6]) const {
-  const Vec3 a = (xD - origin_) * scale_, b = (xL - origin_) * scale_;
-  out[0] = a.x; out[1] = a.y; out[2] = a.z;
-  out[3] = b.x; out[4] = b.y; out[5] = b.z;
-}
+// A LIFO task queue run by a fixed number of threads: subtrees of large nodes
+// become tasks, so two threads stay busy however unbalanced the tree is.
+// Tasks write disjoint parts of the result, so the result does not depend on
+// which thread runs what.
+struct STree::TaskQueue {
+  std::mutex m;
+  std::condition_variable cv;
+  std::vector<std::function<void()>> q;
+  int pending = 0;  // queued + running
+  bool parallel = false;
+
+  void push(std::function<void()> f) {
+    {
+      std::lock_guard<std::mutex> l(m);
+      q.push_back(std::move(f));
+      ++pending;
+    }
+    cv.notify_one();
+  }
+  void work() {
+    for (;;) {
+      std::function<void()> f;
+      {
+        std::unique_lock<std::mutex> l(m);
+        cv.wait(l, [&] { return !q.empty() || pending == 0; });
+        if (q.empty()) return;
+        f = std::move(q.back());
+        q.pop_back();
+      }
+      f();
+      std::lock_guard<std::mutex> l(m);
+      if (--pending == 0) cv.notify_all();
+    }
+  }
+  void run(int threads) {
+    std::vector<std::thread> pool;
+    for (int t = 1; t < threads; ++t) pool.emplace_back([this] { work(); });
+    work();
+    for (auto& th : pool) th.join();
+  }
+};
 
 namespace {
-inline float coord(const SubpathSample& s, int axis, const Vec3& origin, float scale) {
-  return axis < 3 ? (s.xD[axis] - origin[axis]) * scale : (s.xL[axis - 3] - origin[axis - 3]) * scale;
+constexpr uint32_t kTaskMin = 8192;  // nodes with fewer unfiltered samples are not split into tasks
+
+// Per-sample jitter in [-1, 1) for axis `a`, a function of the content only.
+inline float jitter(uint64_t key, int a) {
+  return float(mix64(key + uint64_t(a) * 0x9e3779b97f4a7c15ULL) >> 40) * (2.f / float(1 << 24)) - 1.f;
 }
 }  // namespace
 
-std::unique_ptr<STree::BuildNode> STree::build_rec(std::vector<SubpathSample> s, int depth,
-                                                   const float lo[6], const float hi[6]) const {
-  auto node = std::make_unique<BuildNode>();
-  if (float(s.size()) <= threshold_ || depth >= cfg_.max_depth) {
-    node->is_leaf = true;
-    Leaf& l = node->leaf;
-    l.depth = depth;
-    std::copy(lo, lo + 6, l.lo);
-    std::copy(hi, hi + 6, l.hi);
-    l.unfiltered = int(std::count_if(s.begin(), s.end(), [](const SubpathSample& x) { return !x.filtered(); }));
-    l.samples = std::move(s);
-    return node;
+void STree::canonical_sort(SubpathSample* s, size_t n) const {
+  if (n < 2) return;
+  std::vector<std::pair<uint64_t, uint32_t>> keys(n);
+  for (size_t i = 0; i < n; ++i) keys[i] = {content_key(s[i]), uint32_t(i)};
+  std::sort(keys.begin(), keys.end(), [&](const auto& a, const auto& b) {
+    return canonical_less(a.first, s[a.second], b.first, s[b.second]);
+  });
+  std::vector<SubpathSample> tmp(s, s + n);
+  for (size_t i = 0; i < n; ++i) s[i] = tmp[keys[i].second];
+}
+
+void STree::make_leaf(BuildNode& node, uint32_t b, uint32_t e, std::vector<SubpathSample> filt, int depth,
+                      const float lo[6], const float hi[6]) {
+  node.is_leaf = true;
+  Leaf& l = node.leaf;
+  l.depth = depth;
+  std::copy(lo, lo + 6, l.lo);
+  std::copy(hi, hi + 6, l.hi);
+  l.begin = b;
+  l.unfiltered = int(e - b);
+  l.filtered = std::move(filt);
+  if (cfg_.filter != STreeFilter::Stochastic) {  // stochastic: after the regrouping
+    canonical_sort(samples_.data() + b, e - b);
+    canonical_sort(l.filtered.data(), l.filtered.size());
+  }
+}
+
+// One node holds the unfiltered samples samples_[b, e) (partitioned in place
+// among its descendants) and its own vector of filtered copies.
+void STree::build_rec(BuildNode& node, uint32_t b, uint32_t e, std::vector<SubpathSample> filt, int depth,
+                      const float lo[6], const float hi[6], TaskQueue& tq) {
+  const uint32_t k = e - b;  // only unfiltered samples count (supplemental Sec. 3.3)
+  if (float(k) <= threshold_ || depth >= cfg_.max_depth) {
+    make_leaf(node, b, e, std::move(filt), depth, lo, hi);
+    return;
   }
   const int axis = depth % 6;
   const float mid = 0.5f * (lo[axis] + hi[axis]);
-  node->axis = uint8_t(axis);
-  node->split = mid;
-  std::vector<SubpathSample> side[2];
-  for (const SubpathSample& x : s) side[coord(x, axis, origin_, scale_) < mid ? 0 : 1].push_back(x);
-  const size_t k = s.size();
-  s.clear();
-  s.shrink_to_fit();
-  // epsilon-overlap filtering: copy the floor(eps k) samples nearest the split
-  // plane from each side to the other, marked as filtered copies.
-  const size_t m = size_t(std::floor(cfg_.epsilon * float(k)));
-  std::vector<SubpathSample> copy[2];
-  if (m > 0) {
-    for (int c = 0; c < 2; ++c) {
-      std::vector<SubpathSample>& v = side[c];
-      const size_t take = std::min(m, v.size());
-      auto dist = [&](const SubpathSample& x) { return std::abs(coord(x, axis, origin_, scale_) - mid); };
-      std::nth_element(v.begin(), v.begin() + std::ptrdiff_t(take), v.end(),
-                       [&](const SubpathSample& a, const SubpathSample& b) { return dist(a) < dist(b); });
-      copy[1 - c].assign(v.begin(), v.begin() + std::ptrdiff_t(take));
-      for (auto& x : copy[1 - c]) x.flags |= SubpathSample::kFiltered;
-    }
-  }
+  node.axis = uint8_t(axis);
+  node.split = mid;
   float clo[2][6], chi[2][6];
   for (int c = 0; c < 2; ++c) {
     std::copy(lo, lo + 6, clo[c]);
@@ -70,33 +141,76 @@ std::unique_ptr<STree::BuildNode> STree::build_rec(std::vector<SubpathSample> s,
   }
   chi[0][axis] = mid;
   clo[1][axis] = mid;
-  for (int c = 0; c < 2; ++c) {
-    side[c].insert(side[c].end(), copy[c].begin(), copy[c].end());
-    // drop (filtered) samples farther than 2 eps x the extent from the child's box
-    if (cfg_.epsilon > 0.f) {
-      const float* l = clo[c];
-      const float* h = chi[c];
-      auto far = [&](const SubpathSample& x) {
-        if (!x.filtered()) return false;
-        for (int a = 0; a < 6; ++a) {
-          const float v = coord(x, a, origin_, scale_);
-          const float d = std::max({l[a] - v, 0.f, v - h[a]});
-          if (d > 2.f * cfg_.epsilon * (h[a] - l[a])) return true;
-        }
-        return false;
-      };
-      side[c].erase(std::remove_if(side[c].begin(), side[c].end(), far), side[c].end());
+  SubpathSample* S = samples_.data();
+  const Cube6& cube = cube_;
+  auto x = [&](const SubpathSample& s) { return cube.coord(s, axis); };
+  const uint32_t p = uint32_t(
+      std::partition(S + b, S + e, [&](const SubpathSample& s) { return x(s) < mid; }) - S);
+
+  std::vector<SubpathSample> cf[2];
+  const float eps = cfg_.filter == STreeFilter::Nearest ? cfg_.epsilon : 0.f;
+  // Margin of each child on the split axis: a filtered sample farther than
+  // 2 eps x the child's extent from the child's box is dropped.
+  const float margin[2] = {2.f * eps * (mid - lo[axis]), 2.f * eps * (hi[axis] - mid)};
+  if (eps > 0.f) {
+    // Inherited copies: partitioned by side, the far ones dropped (only the
+    // split axis changes the box, so only it needs checking).
+    for (const SubpathSample& s : filt) {
+      const float v = x(s);
+      const int c = v < mid ? 0 : 1;
+      const float d = c == 0 ? lo[axis] - v : v - hi[axis];
+      if (d <= margin[c]) cf[c].push_back(s);
+    }
+    // New copies: the floor(eps k) unfiltered samples of each side nearest the
+    // plane go to the other child (supplemental Sec. 3.3) - those within the
+    // other child's margin, as farther ones would be dropped there at once.
+    const size_t m = size_t(std::floor(eps * float(k)));
+    const uint32_t range[2][2] = {{b, p}, {p, e}};
+    for (int c = 0; c < 2 && m > 0; ++c) {
+      const int o = 1 - c;
+      SubpathSample* first = S + range[c][0];
+      SubpathSample* last = S + range[c][1];
+      auto dist = [&](const SubpathSample& s) { return std::abs(x(s) - mid); };
+      SubpathSample* cand_end = std::partition(first, last, [&](const SubpathSample& s) { return dist(s) <= margin[o]; });
+      const size_t nc = size_t(cand_end - first);
+      const size_t take = std::min(m, nc);
+      if (take < nc) {
+        // nearest first; ties broken by content, so the chosen set does not
+        // depend on the input order
+        std::nth_element(first, first + take, cand_end, [&](const SubpathSample& a, const SubpathSample& bb) {
+          const float da = dist(a), db = dist(bb);
+          if (da != db) return da < db;
+          return canonical_less(content_key(a), a, content_key(bb), bb);
+        });
+      }
+      cf[o].reserve(cf[o].size() + take);
+      for (size_t i = 0; i < take; ++i) {
+        cf[o].push_back(first[i]);
+        cf[o].back().flags |= SubpathSample::kFiltered;
+      }
     }
   }
-  if (depth < cfg_.parallel_depth) {
-    auto left = std::async(std::launch::async, [&] { return build_rec(std::move(side[0]), depth + 1, clo[0], chi[0]); });
-    node->child[1] = build_rec(std::move(side[1]), depth + 1, clo[1], chi[1]);
-    node->child[0] = left.get();
+  filt.clear();
+  filt.shrink_to_fit();
+
+  node.child[0] = std::make_unique<BuildNode>();
+  node.child[1] = std::make_unique<BuildNode>();
+  BuildNode* c0 = node.child[0].get();
+  BuildNode* c1 = node.child[1].get();
+  if (tq.parallel && e - p >= kTaskMin && p - b >= kTaskMin) {
+    // the right subtree as a task (boxes copied into the closure)
+    struct Box { float lo[6], hi[6]; } box;
+    std::copy(clo[1], clo[1] + 6, box.lo);
+    std::copy(chi[1], chi[1] + 6, box.hi);
+    auto f1 = std::make_shared<std::vector<SubpathSample>>(std::move(cf[1]));
+    tq.push([this, c1, p, e, f1, depth, box, &tq]() mutable {
+      build_rec(*c1, p, e, std::move(*f1), depth + 1, box.lo, box.hi, tq);
+    });
+    build_rec(*c0, b, p, std::move(cf[0]), depth + 1, clo[0], chi[0], tq);
   } else {
-    node->child[0] = build_rec(std::move(side[0]), depth + 1, clo[0], chi[0]);
-    node->child[1] = build_rec(std::move(side[1]), depth + 1, clo[1], chi[1]);
+    build_rec(*c0, b, p, std::move(cf[0]), depth + 1, clo[0], chi[0], tq);
+    build_rec(*c1, p, e, std::move(cf[1]), depth + 1, clo[1], chi[1], tq);
   }
-  return node;
 }
 
 int STree::flatten(BuildNode& b) {
@@ -116,28 +230,75 @@ int STree::flatten(BuildNode& b) {
   return id;
 }
 
+namespace {
+template <typename F>
+void parallel_for(size_t n, int threads, F&& f) {
+  std::atomic<size_t> next{0};
+  auto work = [&] {
+    for (size_t i; (i = next.fetch_add(1)) < n;) f(i);
+  };
+  std::vector<std::thread> pool;
+  for (int t = 1; t < std::max(1, threads); ++t) pool.emplace_back(work);
+  work();
+  for (auto& th : pool) th.join();
+}
+}  // namespace
+
+// Stochastic filtering (Mueller 2019, "Practical Path Guiding" in Production,
+// as the MPG paper's StochasticFilter ablation): every sample is jittered once,
+// uniformly within +-eps x its leaf's extent on each axis, and moved to the
+// leaf holding the jittered position. No copies.
+void STree::stochastic_regroup() {
+  const size_t L = leaves_.size();
+  std::vector<uint32_t> dest(samples_.size());
+  parallel_for(L, cfg_.threads, [&](size_t li) {
+    const Leaf& l = leaves_[li];
+    for (uint32_t i = l.begin; i < l.begin + uint32_t(l.unfiltered); ++i) {
+      const SubpathSample& s = samples_[i];
+      const uint64_t key = content_key(s);
+      float q[6];
+      for (int a = 0; a < 6; ++a) q[a] = cube_.coord(s, a) + jitter(key, a) * cfg_.epsilon * (l.hi[a] - l.lo[a]);
+      dest[i] = uint32_t(leaf_of_normalised(q));
+    }
+  });
+  std::vector<uint32_t> offset(L + 1, 0);
+  for (uint32_t d : dest) offset[d + 1]++;
+  for (size_t i = 0; i < L; ++i) offset[i + 1] += offset[i];
+  for (size_t i = 0; i < L; ++i) {
+    leaves_[i].begin = offset[i];
+    leaves_[i].unfiltered = int(offset[i + 1] - offset[i]);
+  }
+  std::vector<SubpathSample> out(samples_.size());
+  for (size_t i = 0; i < samples_.size(); ++i) out[offset[dest[i]]++] = samples_[i];
+  samples_ = std::move(out);
+}
+
 void STree::build(const std::vector<SubpathSample>& samples, const Vec3& bmin, const Vec3& bmax,
                   const STreeConfig& cfg) {
   cfg_ = cfg;
   nodes_.clear();
   leaves_.clear();
-  // "Cubified" scene bounds: one scale for all axes.
-  const Vec3 ext = bmax - bmin;
-  const float side = std::max(1e-6f, max_comp(ext)) * 1.0001f;
-  origin_ = 0.5f * (bmin + bmax) - Vec3(0.5f * side);
-  scale_ = 1.f / side;
-  threshold_ = std::max(1.f, cfg.c * std::sqrt(float(samples.size())));
-  std::vector<SubpathSample> s(samples);
-  for (auto& x : s) x.flags = uint8_t(x.flags & ~SubpathSample::kFiltered);
+  cube_.fit(bmin, bmax);
+  threshold_ = cfg.threshold > 0 ? float(cfg.threshold) : std::max(1.f, cfg.c * std::sqrt(float(samples.size())));
+  samples_ = samples;
+  for (auto& x : samples_) x.flags = uint8_t(x.flags & ~SubpathSample::kFiltered);
   const float lo[6] = {0, 0, 0, 0, 0, 0}, hi[6] = {1, 1, 1, 1, 1, 1};
-  auto root = build_rec(std::move(s), 0, lo, hi);
-  flatten(*root);
+  BuildNode root;
+  TaskQueue tq;
+  tq.parallel = cfg.threads > 1;
+  tq.push([&] { build_rec(root, 0, uint32_t(samples_.size()), {}, 0, lo, hi, tq); });
+  tq.run(std::max(1, cfg.threads));
+  flatten(root);
+  if (cfg_.filter == STreeFilter::Stochastic) {
+    if (cfg_.epsilon > 0.f) stochastic_regroup();
+    parallel_for(leaves_.size(), cfg_.threads, [&](size_t i) {
+      canonical_sort(samples_.data() + leaves_[i].begin, size_t(leaves_[i].unfiltered));
+    });
+  }
 }
 
-int STree::leaf_of(const Vec3& xD, const Vec3& xL) const {
+int STree::leaf_of_normalised(const float q[6]) const {
   if (nodes_.empty()) return -1;
-  float q[6];
-  normalise(xD, xL, q);
   int n = 0;
   while (nodes_[size_t(n)].leaf < 0) {
     const Node& nd = nodes_[size_t(n)];
@@ -146,9 +307,15 @@ int STree::leaf_of(const Vec3& xD, const Vec3& xL) const {
   return nodes_[size_t(n)].leaf;
 }
 
+int STree::leaf_of(const Vec3& xD, const Vec3& xL) const {
+  float q[6];
+  normalise(xD, xL, q);
+  return leaf_of_normalised(q);
+}
+
 size_t STree::num_samples_stored() const {
   size_t t = 0;
-  for (const Leaf& l : leaves_) t += l.samples.size();
+  for (const Leaf& l : leaves_) t += l.size();
   return t;
 }
 
