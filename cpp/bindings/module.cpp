@@ -660,6 +660,7 @@ PYBIND11_MODULE(_core, m) {
       })
       .def_property_readonly("threshold", [](const GuidingState& g) { return g.tree().threshold(); })
       .def_property_readonly("build_seconds", &GuidingState::build_seconds)
+      .def_property_readonly("structure_seconds", &GuidingState::structure_seconds)
       .def("leaf_of", [](const GuidingState& g, py::object xD, py::object xL) { return g.tree().leaf_of(vec3(xD), vec3(xL)); })
       .def("leaf", [](const GuidingState& g, int i) {
         if (i < 0 || size_t(i) >= g.tree().num_leaves()) throw std::out_of_range("leaf index");
@@ -668,12 +669,13 @@ PYBIND11_MODULE(_core, m) {
         FArray xd(std::vector<ssize_t>{k, 3}), xl(std::vector<ssize_t>{k, 3});
         py::array_t<bool> filt(std::vector<ssize_t>{k});
         ssize_t j = 0;
-        for (const SampleSpan sp : {g.tree().unfiltered(i), g.tree().filtered(i)})
-          for (const SubpathSample& s : sp) {
-            for (int a = 0; a < 3; ++a) { xd.mutable_at(j, a) = s.xD[a]; xl.mutable_at(j, a) = s.xL[a]; }
-            filt.mutable_at(j) = s.filtered();
-            ++j;
-          }
+        auto put = [&](const SubpathSample& s, bool f) {
+          for (int a = 0; a < 3; ++a) { xd.mutable_at(j, a) = s.xD[a]; xl.mutable_at(j, a) = s.xL[a]; }
+          filt.mutable_at(j) = f;
+          ++j;
+        };
+        for (const SubpathSample& s : g.tree().unfiltered(i)) put(s, false);
+        for (uint32_t c : g.tree().filtered(i)) put(g.tree().samples()[c], true);
         py::dict r;
         r["xD"] = xd; r["xL"] = xl; r["filtered"] = filt; r["unfiltered"] = l.unfiltered; r["depth"] = l.depth;
         r["lo"] = std::vector<float>(l.lo, l.lo + 6); r["hi"] = std::vector<float>(l.hi, l.hi + 6);

@@ -13,24 +13,25 @@ namespace {
 // each scans both ways until the gap along that axis alone exceeds the best
 // distance found. Bounded by the neighbours within sigma_i along one axis
 // (O(m log m) for spread-out or clustered directions; exact in every case).
-std::vector<float> nearest_distances(const std::vector<Vec3>& d) {
-  const size_t m = d.size();
-  std::vector<float> best(m, kInf);
-  if (m < 2) return best;
+void nearest_distances(const Vec3* d, size_t m, float* best) {
+  for (size_t i = 0; i < m; ++i) best[i] = kInf;
+  if (m < 2) return;
   Vec3 lo(kInf), hi(-kInf);
-  for (const Vec3& v : d) {
-    lo = glm::min(lo, v);
-    hi = glm::max(hi, v);
+  for (size_t i = 0; i < m; ++i) {
+    lo = glm::min(lo, d[i]);
+    hi = glm::max(hi, d[i]);
   }
   const Vec3 ext = hi - lo;
   const int ax = ext.x >= ext.y && ext.x >= ext.z ? 0 : (ext.y >= ext.z ? 1 : 2);
   struct Item { float key; uint32_t i; };
-  std::vector<Item> order(m);
+  thread_local std::vector<Item> order;
+  thread_local std::vector<Vec3> p;  // sorted copy: the scans read memory in order
+  order.resize(m);
+  p.resize(m);
   for (size_t i = 0; i < m; ++i) order[i] = {d[i][ax], uint32_t(i)};
   std::sort(order.begin(), order.end(), [](const Item& a, const Item& b) {
     return a.key < b.key || (a.key == b.key && a.i < b.i);
   });
-  std::vector<Vec3> p(m);  // sorted copy: the scans read memory in order
   for (size_t o = 0; o < m; ++o) p[o] = d[order[o].i];
   for (size_t o = 0; o < m; ++o) {
     float b2 = kInf;  // squared best distance
@@ -50,49 +51,84 @@ std::vector<float> nearest_distances(const std::vector<Vec3>& d) {
     }
     best[order[o].i] = std::sqrt(b2);
   }
-  return best;
 }
 }  // namespace
 
-void ChainDistribution::build(SampleSpan a, SampleSpan b) {
+void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uint32_t* idx, size_t nidx) {
+  // Group the samples by (n, tau) in their given order: a small flat table of
+  // group keys (a leaf rarely has more than a few dozen types).
+  struct Group { uint32_t key; uint32_t count = 0; float weight = 0.f; };
+  thread_local std::vector<Group> groups;
+  thread_local std::vector<uint32_t> gid;                 // per accepted sample
+  thread_local std::vector<const SubpathSample*> acc;     // accepted samples
+  groups.clear();
+  gid.clear();
+  acc.clear();
   std::vector<float> wn(kMaxN, 0.f);
-  std::vector<std::map<uint16_t, float>> wt(kMaxN);
-  std::map<std::pair<int, uint16_t>, std::pair<std::vector<Vec3>, std::vector<float>>> groups;
+  uint32_t last = ~0u;
   auto add = [&](const SubpathSample& s) {
     if (s.n < 1 || s.n > kMaxN || !(s.weight > 0.f) || !std::isfinite(s.weight)) return;
-    wn[size_t(s.n - 1)] += s.weight;                    // Eq. 10
-    wt[size_t(s.n - 1)][s.tau] += s.weight;             // Eq. 11
-    auto& g = groups[{int(s.n), s.tau}];
-    g.first.push_back(oct_decode(Vec2(s.dir[0], s.dir[1])));
-    g.second.push_back(s.weight);
+    const uint32_t key = uint32_t(s.n - 1) << 16 | s.tau;
+    if (last >= groups.size() || groups[last].key != key) {
+      last = 0;
+      while (last < groups.size() && groups[last].key != key) ++last;
+      if (last == groups.size()) groups.push_back(Group{key});
+    }
+    wn[size_t(s.n - 1)] += s.weight;   // Eq. 10
+    groups[last].weight += s.weight;   // Eq. 11
+    groups[last].count++;
+    gid.push_back(last);
+    acc.push_back(&s);
   };
   for (const SubpathSample& s : a) add(s);
-  for (const SubpathSample& s : b) add(s);
+  for (size_t i = 0; i < nidx; ++i) {
+    if (i + 16 < nidx) __builtin_prefetch(base + idx[i + 16]);
+    add(base[idx[i]]);
+  }
   n_dist_.build(wn);
+  // groups in (n, tau) order
+  thread_local std::vector<uint32_t> rank;
+  rank.resize(groups.size());
+  for (size_t g = 0; g < groups.size(); ++g) rank[g] = uint32_t(g);
+  std::sort(rank.begin(), rank.end(), [&](uint32_t x, uint32_t y) { return groups[x].key < groups[y].key; });
   tau_keys_.assign(kMaxN, {});
   tau_dist_.assign(kMaxN, DiscreteDistribution());
-  for (int n = 0; n < kMaxN; ++n) {
+  {
     std::vector<float> w;
-    for (const auto& kv : wt[size_t(n)]) {
-      tau_keys_[size_t(n)].push_back(kv.first);
-      w.push_back(kv.second);
+    for (size_t r = 0; r < rank.size();) {
+      const uint32_t n = groups[rank[r]].key >> 16;
+      w.clear();
+      for (; r < rank.size() && (groups[rank[r]].key >> 16) == n; ++r) {
+        tau_keys_[n].push_back(uint16_t(groups[rank[r]].key & 0xffffu));
+        w.push_back(groups[rank[r]].weight);
+      }
+      tau_dist_[n].build(w);
     }
-    tau_dist_[size_t(n)].build(w);
   }
+  // one vMF lobe per sample (Eq. 12), per (n, tau)
   lobes_.clear();
-  for (auto& kv : groups) {
-    Lobes L;
-    L.mu = std::move(kv.second.first);
-    L.weight = std::move(kv.second.second);
-    const std::vector<float> sigma = nearest_distances(L.mu);
-    L.kappa.resize(L.mu.size());
-    for (size_t i = 0; i < L.mu.size(); ++i) {
+  std::vector<Lobes> lobes(groups.size());
+  for (size_t g = 0; g < groups.size(); ++g) {
+    lobes[g].mu.reserve(groups[g].count);
+    lobes[g].weight.reserve(groups[g].count);
+  }
+  for (size_t i = 0; i < acc.size(); ++i) {
+    Lobes& L = lobes[gid[i]];
+    L.mu.push_back(oct_decode(Vec2(acc[i]->dir[0], acc[i]->dir[1])));
+    L.weight.push_back(acc[i]->weight);
+  }
+  for (size_t g = 0; g < groups.size(); ++g) {
+    Lobes& L = lobes[g];
+    const size_t m = L.mu.size();
+    L.kappa.resize(m);
+    nearest_distances(L.mu.data(), m, L.kappa.data());  // sigma_i
+    for (size_t i = 0; i < m; ++i) {
       // Eq. 12: kappa_i = sigma_i^-2 (capped; a lone sample gets a broad lobe)
-      L.kappa[i] = std::isinf(sigma[i]) ? kSingleKappa
-                                        : std::min(kMaxKappa, 1.f / std::max(sigma[i] * sigma[i], 1e-30f));
+      const float sg = L.kappa[i];
+      L.kappa[i] = std::isinf(sg) ? kSingleKappa : std::min(kMaxKappa, 1.f / std::max(sg * sg, 1e-30f));
     }
     L.dist.build(L.weight);
-    lobes_.emplace(kv.first, std::move(L));
+    lobes_.emplace(std::make_pair(int(groups[g].key >> 16) + 1, uint16_t(groups[g].key & 0xffffu)), std::move(L));
   }
 }
 

@@ -65,15 +65,18 @@ void GuidingState::build(const std::vector<SubpathSample>& samples, const Vec3& 
       for (int a = 0; a < 6; ++a) pts[i * 6 + size_t(a)] = cube_.coord(s, a);
     }
     knn_.build(std::move(pts));
+    structure_seconds_ = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     knn_k_ = cfg.knn_k > 0 ? cfg.knn_k
                            : std::max(1, int(std::ceil(sc.c * std::sqrt(double(samples.size())))));
   } else {
     tree_.build(samples, bmin, bmax, sc);
+    structure_seconds_ = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     dists_.assign(tree_.num_leaves(), ChainDistribution());
     std::atomic<size_t> next{0};
     auto work = [&] {
       for (size_t i; (i = next.fetch_add(1)) < dists_.size();)
-        dists_[i].build(tree_.unfiltered(int(i)), tree_.filtered(int(i)));
+        dists_[i].build(tree_.unfiltered(int(i)), tree_.samples().data(), tree_.filtered(int(i)).data(),
+                        tree_.filtered(int(i)).size());
     };
     std::vector<std::thread> pool;
     for (int t = 1; t < std::max(1, sc.threads); ++t) pool.emplace_back(work);

@@ -51,6 +51,7 @@ class GuidingState {
     return cfg_.structure == GuideStructure::Knn ? knn_samples_.size() : tree_.num_samples_stored();
   }
   double build_seconds() const { return build_seconds_; }
+  double structure_seconds() const { return structure_seconds_; }  // the STree / kd-tree part of it
   void normalise(const Vec3& xD, const Vec3& xL, float out[6]) const { cube_.normalise(xD, xL, out); }
 
  private:
@@ -63,7 +64,7 @@ class GuidingState {
   Cube6 cube_;  // the normalisation (the same for both structures)
   int knn_k_ = 0;
   uint64_t generation_ = 0;  // identifies this build in the per-thread caches
-  double build_seconds_ = 0.0;
+  double build_seconds_ = 0.0, structure_seconds_ = 0.0;
 };
 
 }  // namespace mpg

@@ -92,42 +92,110 @@ constexpr uint32_t kTaskMin = 8192;  // nodes with fewer unfiltered samples are 
 inline float jitter(uint64_t key, int a) {
   return float(mix64(key + uint64_t(a) * 0x9e3779b97f4a7c15ULL) >> 40) * (2.f / float(1 << 24)) - 1.f;
 }
+
+template <typename F>
+void parallel_for(size_t n, int threads, F&& f) {
+  std::atomic<size_t> next{0};
+  auto work = [&] {
+    for (size_t i; (i = next.fetch_add(1)) < n;) f(i);
+  };
+  std::vector<std::thread> pool;
+  for (int t = 1; t < std::max(1, threads); ++t) pool.emplace_back(work);
+  work();
+  for (auto& th : pool) th.join();
+}
 }  // namespace
 
-void STree::canonical_sort(SubpathSample* s, size_t n) const {
-  if (n < 2) return;
-  std::vector<std::pair<uint64_t, uint32_t>> keys(n);
-  for (size_t i = 0; i < n; ++i) keys[i] = {content_key(s[i]), uint32_t(i)};
-  std::sort(keys.begin(), keys.end(), [&](const auto& a, const auto& b) {
-    return canonical_less(a.first, s[a.second], b.first, s[b.second]);
+// Sorts the input by (6D Morton code, content hash, bytes) into samples_.
+// Level d of the tree splits axis d % 6 at the midpoint of the node's
+// interval, i.e. on bit (B - 1 - d / 6) of the coordinate quantised to B bits
+// (exact: the quantisation multiplies by a power of two), so the code's
+// bit (6B - 1 - d) is the side at depth d, and the samples of every node are
+// a contiguous range of the sorted array.
+void STree::sort_samples(const std::vector<SubpathSample>& in) {
+  const size_t N = in.size();
+  const int B = std::clamp((cfg_.max_depth + 5) / 6, 1, 10);
+  code_bits_ = B;
+  const uint32_t qmax = (1u << B) - 1;
+  // spread[a][q]: the bits of q at axis a's code positions (bit j of q is
+  // split at depth d = (B - 1 - j) * 6 + a, code bit 6B - 1 - d)
+  std::vector<uint64_t> spread(size_t(6) << B, 0);
+  for (int a = 0; a < 6; ++a)
+    for (uint32_t q = 0; q <= qmax; ++q) {
+      uint64_t c = 0;
+      for (int j = 0; j < B; ++j)
+        if ((q >> j) & 1u) c |= uint64_t(1) << (6 * B - 1 - ((B - 1 - j) * 6 + a));
+      spread[(size_t(a) << B) + q] = c;
+    }
+  struct Item { uint64_t code; uint32_t idx; };
+  std::vector<Item> items(N), tmp(N);
+  std::vector<uint64_t> keys(N);
+  const float qscale = float(1u << B);
+  const size_t chunk = 1 << 15;
+  const size_t nchunks = (N + chunk - 1) / chunk;
+  parallel_for(nchunks, cfg_.threads, [&](size_t ci) {
+    for (size_t i = ci * chunk; i < std::min(N, (ci + 1) * chunk); ++i) {
+      uint64_t c = 0;
+      for (int a = 0; a < 6; ++a) {
+        const float x = cube_.coord(in[i], a) * qscale;
+        // x < 0 -> 0, x >= 2^B or NaN -> qmax: the sides `coord < mid` picks
+        const uint32_t q = x < 0.f ? 0u : (x < qscale ? uint32_t(x) : qmax);
+        c |= spread[(size_t(a) << B) + q];
+      }
+      items[i] = {c, uint32_t(i)};
+      keys[i] = content_key(in[i]);
+    }
   });
-  std::vector<SubpathSample> tmp(s, s + n);
-  for (size_t i = 0; i < n; ++i) s[i] = tmp[keys[i].second];
-}
-
-void STree::make_leaf(BuildNode& node, uint32_t b, uint32_t e, std::vector<SubpathSample> filt, int depth,
-                      const float lo[6], const float hi[6]) {
-  node.is_leaf = true;
-  Leaf& l = node.leaf;
-  l.depth = depth;
-  std::copy(lo, lo + 6, l.lo);
-  std::copy(hi, hi + 6, l.hi);
-  l.begin = b;
-  l.unfiltered = int(e - b);
-  l.filtered = std::move(filt);
-  if (cfg_.filter != STreeFilter::Stochastic) {  // stochastic: after the regrouping
-    canonical_sort(samples_.data() + b, e - b);
-    canonical_sort(l.filtered.data(), l.filtered.size());
+  // LSD radix sort on the 6B code bits, 12 bits per pass (stable)
+  for (int shift = 0; shift < 6 * B; shift += 12) {
+    std::vector<uint32_t> count(4097, 0);
+    for (const Item& it : items) count[((it.code >> shift) & 4095) + 1]++;
+    for (size_t i = 1; i < count.size(); ++i) count[i] += count[i - 1];
+    for (const Item& it : items) tmp[count[(it.code >> shift) & 4095]++] = it;
+    items.swap(tmp);
   }
+  // equal codes: canonical order by content
+  for (size_t i = 0; i < N;) {
+    size_t j = i + 1;
+    while (j < N && items[j].code == items[i].code) ++j;
+    if (j - i > 1)
+      std::sort(items.begin() + std::ptrdiff_t(i), items.begin() + std::ptrdiff_t(j), [&](const Item& a, const Item& b) {
+        return canonical_less(keys[a.idx], in[a.idx], keys[b.idx], in[b.idx]);
+      });
+    i = j;
+  }
+  samples_.resize(N);
+  codes_.resize(N);
+  for (auto& c : coords_) c.resize(N);
+  parallel_for(nchunks, cfg_.threads, [&](size_t ci) {
+    const size_t end = std::min(N, (ci + 1) * chunk);
+    for (size_t i = ci * chunk; i < end; ++i) {
+      if (i + 16 < end) __builtin_prefetch(&in[items[i + 16].idx]);
+      SubpathSample s = in[items[i].idx];
+      s.flags = uint8_t(s.flags & ~SubpathSample::kFiltered);
+      samples_[i] = s;
+      codes_[i] = items[i].code;
+      for (int a = 0; a < 6; ++a) coords_[a][i] = cube_.coord(s, a);
+    }
+  });
 }
 
-// One node holds the unfiltered samples samples_[b, e) (partitioned in place
-// among its descendants) and its own vector of filtered copies.
-void STree::build_rec(BuildNode& node, uint32_t b, uint32_t e, std::vector<SubpathSample> filt, int depth,
+// A node: the unfiltered samples samples_[b, e) and the filtered copies `filt`
+// (indices into samples_).
+void STree::build_rec(BuildNode& node, uint32_t b, uint32_t e, std::vector<uint32_t> filt, int depth,
                       const float lo[6], const float hi[6], TaskQueue& tq) {
   const uint32_t k = e - b;  // only unfiltered samples count (supplemental Sec. 3.3)
-  if (float(k) <= threshold_ || depth >= cfg_.max_depth) {
-    make_leaf(node, b, e, std::move(filt), depth, lo, hi);
+  if (float(k) <= threshold_ || depth >= std::min(cfg_.max_depth, 6 * code_bits_)) {
+    node.is_leaf = true;
+    Leaf& l = node.leaf;
+    l.depth = depth;
+    std::copy(lo, lo + 6, l.lo);
+    std::copy(hi, hi + 6, l.hi);
+    l.begin = b;
+    l.unfiltered = int(k);
+    l.filtered = std::move(filt);
+    // in memory order (a canonical order too): reading them is faster
+    std::sort(l.filtered.begin(), l.filtered.end());
     return;
   }
   const int axis = depth % 6;
@@ -141,53 +209,46 @@ void STree::build_rec(BuildNode& node, uint32_t b, uint32_t e, std::vector<Subpa
   }
   chi[0][axis] = mid;
   clo[1][axis] = mid;
-  SubpathSample* S = samples_.data();
-  const Cube6& cube = cube_;
-  auto x = [&](const SubpathSample& s) { return cube.coord(s, axis); };
-  const uint32_t p = uint32_t(
-      std::partition(S + b, S + e, [&](const SubpathSample& s) { return x(s) < mid; }) - S);
+  const int pos = 6 * code_bits_ - 1 - depth;
+  const uint32_t p = uint32_t(std::partition_point(codes_.begin() + b, codes_.begin() + e,
+                                                   [&](uint64_t c) { return ((c >> pos) & 1u) == 0; }) -
+                              codes_.begin());
 
-  std::vector<SubpathSample> cf[2];
+  std::vector<uint32_t> cf[2];
   const float eps = cfg_.filter == STreeFilter::Nearest ? cfg_.epsilon : 0.f;
   // Margin of each child on the split axis: a filtered sample farther than
   // 2 eps x the child's extent from the child's box is dropped.
   const float margin[2] = {2.f * eps * (mid - lo[axis]), 2.f * eps * (hi[axis] - mid)};
   if (eps > 0.f) {
-    // Inherited copies: partitioned by side, the far ones dropped (only the
-    // split axis changes the box, so only it needs checking).
-    for (const SubpathSample& s : filt) {
-      const float v = x(s);
+    const float* X = coords_[axis].data();
+    // Inherited copies: by side, the far ones dropped (only the split axis
+    // changes the box, so only it needs checking).
+    for (uint32_t i : filt) {
+      const float v = X[i];
       const int c = v < mid ? 0 : 1;
       const float d = c == 0 ? lo[axis] - v : v - hi[axis];
-      if (d <= margin[c]) cf[c].push_back(s);
+      if (d <= margin[c]) cf[c].push_back(i);
     }
     // New copies: the floor(eps k) unfiltered samples of each side nearest the
     // plane go to the other child (supplemental Sec. 3.3) - those within the
     // other child's margin, as farther ones would be dropped there at once.
     const size_t m = size_t(std::floor(eps * float(k)));
     const uint32_t range[2][2] = {{b, p}, {p, e}};
+    std::vector<uint32_t> cand;
     for (int c = 0; c < 2 && m > 0; ++c) {
       const int o = 1 - c;
-      SubpathSample* first = S + range[c][0];
-      SubpathSample* last = S + range[c][1];
-      auto dist = [&](const SubpathSample& s) { return std::abs(x(s) - mid); };
-      SubpathSample* cand_end = std::partition(first, last, [&](const SubpathSample& s) { return dist(s) <= margin[o]; });
-      const size_t nc = size_t(cand_end - first);
-      const size_t take = std::min(m, nc);
-      if (take < nc) {
-        // nearest first; ties broken by content, so the chosen set does not
-        // depend on the input order
-        std::nth_element(first, first + take, cand_end, [&](const SubpathSample& a, const SubpathSample& bb) {
-          const float da = dist(a), db = dist(bb);
-          if (da != db) return da < db;
-          return canonical_less(content_key(a), a, content_key(bb), bb);
+      cand.clear();
+      for (uint32_t i = range[c][0]; i < range[c][1]; ++i)
+        if (std::abs(X[i] - mid) <= margin[o]) cand.push_back(i);
+      if (cand.size() > m) {
+        // nearest first; ties by position in the canonical order
+        std::nth_element(cand.begin(), cand.begin() + std::ptrdiff_t(m), cand.end(), [&](uint32_t x, uint32_t y) {
+          const float dx = std::abs(X[x] - mid), dy = std::abs(X[y] - mid);
+          return dx < dy || (dx == dy && x < y);
         });
+        cand.resize(m);
       }
-      cf[o].reserve(cf[o].size() + take);
-      for (size_t i = 0; i < take; ++i) {
-        cf[o].push_back(first[i]);
-        cf[o].back().flags |= SubpathSample::kFiltered;
-      }
+      cf[o].insert(cf[o].end(), cand.begin(), cand.end());
     }
   }
   filt.clear();
@@ -202,7 +263,7 @@ void STree::build_rec(BuildNode& node, uint32_t b, uint32_t e, std::vector<Subpa
     struct Box { float lo[6], hi[6]; } box;
     std::copy(clo[1], clo[1] + 6, box.lo);
     std::copy(chi[1], chi[1] + 6, box.hi);
-    auto f1 = std::make_shared<std::vector<SubpathSample>>(std::move(cf[1]));
+    auto f1 = std::make_shared<std::vector<uint32_t>>(std::move(cf[1]));
     tq.push([this, c1, p, e, f1, depth, box, &tq]() mutable {
       build_rec(*c1, p, e, std::move(*f1), depth + 1, box.lo, box.hi, tq);
     });
@@ -230,20 +291,6 @@ int STree::flatten(BuildNode& b) {
   return id;
 }
 
-namespace {
-template <typename F>
-void parallel_for(size_t n, int threads, F&& f) {
-  std::atomic<size_t> next{0};
-  auto work = [&] {
-    for (size_t i; (i = next.fetch_add(1)) < n;) f(i);
-  };
-  std::vector<std::thread> pool;
-  for (int t = 1; t < std::max(1, threads); ++t) pool.emplace_back(work);
-  work();
-  for (auto& th : pool) th.join();
-}
-}  // namespace
-
 // Stochastic filtering (Mueller 2019, "Practical Path Guiding" in Production,
 // as the MPG paper's StochasticFilter ablation): every sample is jittered once,
 // uniformly within +-eps x its leaf's extent on each axis, and moved to the
@@ -268,6 +315,7 @@ void STree::stochastic_regroup() {
     leaves_[i].begin = offset[i];
     leaves_[i].unfiltered = int(offset[i + 1] - offset[i]);
   }
+  // stable: every leaf keeps the canonical order
   std::vector<SubpathSample> out(samples_.size());
   for (size_t i = 0; i < samples_.size(); ++i) out[offset[dest[i]]++] = samples_[i];
   samples_ = std::move(out);
@@ -280,8 +328,7 @@ void STree::build(const std::vector<SubpathSample>& samples, const Vec3& bmin, c
   leaves_.clear();
   cube_.fit(bmin, bmax);
   threshold_ = cfg.threshold > 0 ? float(cfg.threshold) : std::max(1.f, cfg.c * std::sqrt(float(samples.size())));
-  samples_ = samples;
-  for (auto& x : samples_) x.flags = uint8_t(x.flags & ~SubpathSample::kFiltered);
+  sort_samples(samples);
   const float lo[6] = {0, 0, 0, 0, 0, 0}, hi[6] = {1, 1, 1, 1, 1, 1};
   BuildNode root;
   TaskQueue tq;
@@ -289,12 +336,9 @@ void STree::build(const std::vector<SubpathSample>& samples, const Vec3& bmin, c
   tq.push([&] { build_rec(root, 0, uint32_t(samples_.size()), {}, 0, lo, hi, tq); });
   tq.run(std::max(1, cfg.threads));
   flatten(root);
-  if (cfg_.filter == STreeFilter::Stochastic) {
-    if (cfg_.epsilon > 0.f) stochastic_regroup();
-    parallel_for(leaves_.size(), cfg_.threads, [&](size_t i) {
-      canonical_sort(samples_.data() + leaves_[i].begin, size_t(leaves_[i].unfiltered));
-    });
-  }
+  codes_ = {};
+  for (auto& c : coords_) c = {};
+  if (cfg_.filter == STreeFilter::Stochastic && cfg_.epsilon > 0.f) stochastic_regroup();
 }
 
 int STree::leaf_of_normalised(const float q[6]) const {

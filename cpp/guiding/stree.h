@@ -12,9 +12,14 @@
 //    sample is jittered once by a uniform offset of +-eps x its leaf's extent
 //    on every axis and moved to the leaf of the jittered position;
 //  - none: no copies, no jitter.
-// Rebuilt from scratch from one iteration's samples. The samples of every
-// leaf are kept in a canonical order (by content), so the tree and the leaf
-// contents do not depend on the input order nor on the number of threads.
+// Rebuilt from scratch from one iteration's samples.
+//
+// Build: the midpoint splits cycling the axes are the bits of a 6D Morton
+// code, so the samples are sorted once by (code, content hash) - a canonical
+// order - and every node's unfiltered samples are then a contiguous range of
+// that array (no partitioning). Filtered copies are indices into it. The
+// tree and the leaf contents therefore depend neither on the input order nor
+// on the number of threads.
 #pragma once
 
 #include <memory>
@@ -34,7 +39,7 @@ struct STreeConfig {
   float epsilon = 0.1f;    // filter width; 0 disables filtering
   STreeFilter filter = STreeFilter::Nearest;
   int threshold = 0;       // a fixed split threshold; 0: c sqrt(|S|) (MPG Sec. 5.5)
-  int max_depth = 36;      // depth cap (6 levels per halving of every axis)
+  int max_depth = 36;      // depth cap (6 levels per halving of every axis; at most 60)
   int threads = 2;         // build threads (the result does not depend on it)
 };
 
@@ -64,7 +69,7 @@ class STree {
   struct Leaf {
     uint32_t begin = 0;     // its unfiltered samples: samples_[begin, begin + unfiltered)
     int unfiltered = 0;
-    std::vector<SubpathSample> filtered;  // filtered copies (nearest filter)
+    std::vector<uint32_t> filtered;  // filtered copies (nearest filter): indices into samples_
     int depth = 0;
     float lo[6], hi[6];     // box in normalised coordinates
     size_t size() const { return size_t(unfiltered) + filtered.size(); }
@@ -81,10 +86,9 @@ class STree {
     const Leaf& l = leaves_[size_t(i)];
     return {samples_.data() + l.begin, size_t(l.unfiltered)};
   }
-  SampleSpan filtered(int i) const {
-    const Leaf& l = leaves_[size_t(i)];
-    return {l.filtered.data(), l.filtered.size()};
-  }
+  const std::vector<uint32_t>& filtered(int i) const { return leaves_[size_t(i)].filtered; }
+  // All samples, each once (unfiltered), grouped by leaf.
+  const std::vector<SubpathSample>& samples() const { return samples_; }
   size_t num_leaves() const { return leaves_.size(); }
   size_t num_nodes() const { return nodes_.size(); }
   size_t num_samples_stored() const;
@@ -96,17 +100,19 @@ class STree {
  private:
   struct BuildNode;
   struct TaskQueue;
-  void build_rec(BuildNode& node, uint32_t b, uint32_t e, std::vector<SubpathSample> filt, int depth,
+  void sort_samples(const std::vector<SubpathSample>& in);
+  void build_rec(BuildNode& node, uint32_t b, uint32_t e, std::vector<uint32_t> filt, int depth,
                  const float lo[6], const float hi[6], TaskQueue& tq);
-  void make_leaf(BuildNode& node, uint32_t b, uint32_t e, std::vector<SubpathSample> filt, int depth,
-                 const float lo[6], const float hi[6]);
   void stochastic_regroup();
-  void canonical_sort(SubpathSample* s, size_t n) const;
   int flatten(BuildNode& b);
 
   std::vector<Node> nodes_;
   std::vector<Leaf> leaves_;
   std::vector<SubpathSample> samples_;  // every input sample once, grouped by leaf
+  // during the build only: Morton codes and per-axis coordinates of samples_
+  std::vector<uint64_t> codes_;
+  std::vector<float> coords_[6];
+  int code_bits_ = 0;  // bits per axis in codes_
   Cube6 cube_;
   float threshold_ = 1.f;
   STreeConfig cfg_;
