@@ -4,6 +4,7 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <chrono>
 #include <memory>
 #include <stdexcept>
 
@@ -651,6 +652,18 @@ PYBIND11_MODULE(_core, m) {
         std::vector<float> p(ChainDistribution::kMaxN);
         for (int n = 1; n <= ChainDistribution::kMaxN; ++n) p[size_t(n - 1)] = d->pmf_n(n);
         return py::cast(p);
+      })
+      .def("time_queries", [](const GuidingState& g, const FArray& xD, const FArray& xL) {
+        // Seconds for query() of every (x_D, x_L) row on this thread (benchmarks):
+        // the leaf lookup for stree, the k-NN search and distribution build for knn.
+        const auto pd = rows3(xD, "xD"), pl = rows3(xL, "xL");
+        if (pd.size() != pl.size()) throw std::invalid_argument("xD and xL must have the same length");
+        py::gil_scoped_release nogil;
+        const auto t0 = std::chrono::steady_clock::now();
+        size_t found = 0;
+        for (size_t i = 0; i < pd.size(); ++i) found += g.query(pd[i], pl[i]) != nullptr;
+        const double sec = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        return std::make_pair(sec, found);
       })
       .def("knn_neighbours", [](const GuidingState& g, py::object xD, py::object xL) {
         if (g.config().structure != GuideStructure::Knn) throw std::invalid_argument("not a knn guiding state");

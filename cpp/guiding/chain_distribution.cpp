@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 
 #include "core/warp.h"
 
@@ -23,33 +24,43 @@ void nearest_distances(const Vec3* d, size_t m, float* best) {
   }
   const Vec3 ext = hi - lo;
   const int ax = ext.x >= ext.y && ext.x >= ext.z ? 0 : (ext.y >= ext.z ? 1 : 2);
-  struct Item { float key; uint32_t i; };
-  thread_local std::vector<Item> order;
+  // sort by the coordinate along ax: (order-preserving bits of the float,
+  // index) packed in one integer
+  thread_local std::vector<uint64_t> order;
   thread_local std::vector<Vec3> p;  // sorted copy: the scans read memory in order
+  thread_local std::vector<float> key;
   order.resize(m);
   p.resize(m);
-  for (size_t i = 0; i < m; ++i) order[i] = {d[i][ax], uint32_t(i)};
-  std::sort(order.begin(), order.end(), [](const Item& a, const Item& b) {
-    return a.key < b.key || (a.key == b.key && a.i < b.i);
-  });
-  for (size_t o = 0; o < m; ++o) p[o] = d[order[o].i];
+  key.resize(m);
+  for (size_t i = 0; i < m; ++i) {
+    uint32_t u;
+    const float f = d[i][ax] + 0.f;  // -0 -> +0
+    std::memcpy(&u, &f, 4);
+    u = (u & 0x80000000u) ? ~u : (u | 0x80000000u);
+    order[i] = uint64_t(u) << 32 | uint32_t(i);
+  }
+  std::sort(order.begin(), order.end());
+  for (size_t o = 0; o < m; ++o) {
+    p[o] = d[uint32_t(order[o])];
+    key[o] = p[o][ax];
+  }
   for (size_t o = 0; o < m; ++o) {
     float b2 = kInf;  // squared best distance
     const Vec3 q = p[o];
-    const float k = order[o].key;
+    const float k = key[o];
     for (size_t j = o + 1; j < m; ++j) {
-      const float g = order[j].key - k;
+      const float g = key[j] - k;
       if (g * g >= b2) break;
       const Vec3 t = p[j] - q;
       b2 = std::min(b2, glm::dot(t, t));
     }
     for (size_t j = o; j-- > 0;) {
-      const float g = k - order[j].key;
+      const float g = k - key[j];
       if (g * g >= b2) break;
       const Vec3 t = p[j] - q;
       b2 = std::min(b2, glm::dot(t, t));
     }
-    best[order[o].i] = std::sqrt(b2);
+    best[uint32_t(order[o])] = std::sqrt(b2);
   }
 }
 }  // namespace

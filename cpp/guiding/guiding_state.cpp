@@ -27,7 +27,7 @@ struct KnnCache {
   float q[6] = {};
   bool has = false;
   ChainDistribution dist;
-  std::vector<uint32_t> idx;
+  std::vector<uint32_t> idx, next;  // neighbours of the cached / the new query
   std::vector<SubpathSample> buf;
 };
 }  // namespace
@@ -100,10 +100,14 @@ const ChainDistribution* GuidingState::query(const Vec3& xD, const Vec3& xL) con
     cube_.normalise(xD, xL, q);
     if (c.has && c.owner == this && c.generation == generation_ && std::memcmp(q, c.q, sizeof(q)) == 0)
       return &c.dist;
-    knn_.query(q, size_t(knn_k_), c.idx);
-    c.buf.resize(c.idx.size());
-    for (size_t i = 0; i < c.idx.size(); ++i) c.buf[i] = knn_samples_[c.idx[i]];
-    c.dist.build(c.buf);
+    knn_.query(q, size_t(knn_k_), c.next);
+    // the same neighbours as the last query (nearby x_D, the same x_L): reuse
+    if (!(c.has && c.owner == this && c.generation == generation_ && c.next == c.idx)) {
+      c.idx.swap(c.next);
+      c.buf.resize(c.idx.size());
+      for (size_t i = 0; i < c.idx.size(); ++i) c.buf[i] = knn_samples_[c.idx[i]];
+      c.dist.build(c.buf);
+    }
     c.owner = this;
     c.generation = generation_;
     std::memcpy(c.q, q, sizeof(q));

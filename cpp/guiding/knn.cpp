@@ -19,6 +19,10 @@ void KnnIndex::build(std::vector<float> points) {
   nodes_.clear();
   nodes_.reserve(2 * (n / kBucket + 1));
   if (n > 0) build_rec(0, n);
+  // points in tree order: a bucket's points are contiguous
+  std::vector<float> sorted(pts_.size());
+  for (uint32_t j = 0; j < n; ++j) std::copy(pt(idx_[j]), pt(idx_[j]) + 6, sorted.data() + size_t(j) * 6);
+  pts_.swap(sorted);
 }
 
 // Median split along the axis of largest spread.
@@ -64,8 +68,9 @@ void KnnIndex::query(const float q[6], size_t k, std::vector<uint32_t>& out) con
   using Cand = std::pair<double, uint32_t>;
   std::vector<Cand> heap;
   heap.reserve(k + 1);
-  auto visit = [&](uint32_t i) {
-    const float* p = pt(i);
+  auto visit = [&](uint32_t j) {  // position j in tree order
+    const float* p = pt(j);
+    const uint32_t i = idx_[j];
     double d = 0.0;
     for (int a = 0; a < 6; ++a) {
       const double t = double(p[a]) - double(q[a]);
@@ -82,25 +87,29 @@ void KnnIndex::query(const float q[6], size_t k, std::vector<uint32_t>& out) con
     }
   };
   auto worst = [&] { return heap.size() < k ? std::numeric_limits<double>::infinity() : heap.front().first; };
-  // depth-first, nearer child first; a far child is visited while its slab
-  // can hold a point at a distance <= the current k-th (ties by index).
-  struct Item { int node; double d; };
-  Item stack[128];
-  int sp = 0;
-  stack[sp++] = {0, 0.0};
-  while (sp > 0) {
-    const Item it = stack[--sp];
-    if (it.d > worst()) continue;
-    const Node& nd = nodes_[size_t(it.node)];
+  // Depth-first, nearer child first, with the incremental distance of Arya &
+  // Mount (rd = squared distance from q to the cell, off[a] its per-axis
+  // part): a far child is visited while rd <= the current k-th distance
+  // (<=: ties are broken by index).
+  double off[6] = {0, 0, 0, 0, 0, 0};
+  auto search = [&](auto&& self, int node, double rd) -> void {
+    const Node& nd = nodes_[size_t(node)];
     if (nd.axis < 0) {
-      for (uint32_t j = nd.begin; j < nd.end; ++j) visit(idx_[j]);
-      continue;
+      for (uint32_t j = nd.begin; j < nd.end; ++j) visit(j);
+      return;
     }
     const double t = double(q[nd.axis]) - double(nd.split);
     const int near = t < 0.0 ? 0 : 1;
-    stack[sp++] = {nd.child[1 - near], std::max(it.d, t * t)};
-    stack[sp++] = {nd.child[near], it.d};
-  }
+    self(self, nd.child[near], rd);
+    const double old = off[nd.axis];
+    const double rd2 = rd - old * old + t * t;
+    if (rd2 <= worst() * (1.0 + 1e-12)) {  // (margin for the rounding of rd)
+      off[nd.axis] = t;
+      self(self, nd.child[1 - near], rd2);
+      off[nd.axis] = old;
+    }
+  };
+  search(search, 0, 0.0);
   out.resize(heap.size());
   for (size_t i = 0; i < heap.size(); ++i) out[i] = heap[i].second;
   std::sort(out.begin(), out.end());

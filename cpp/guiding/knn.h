@@ -32,7 +32,7 @@ class KnnIndex {
   int build_rec(uint32_t b, uint32_t e);
   const float* pt(uint32_t i) const { return pts_.data() + size_t(i) * 6; }
 
-  std::vector<float> pts_;
+  std::vector<float> pts_;      // by index during the build, then in tree order
   std::vector<uint32_t> idx_;
   std::vector<Node> nodes_;
 };
