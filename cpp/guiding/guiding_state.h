@@ -1,5 +1,5 @@
 // The guiding state: the spatial structure over the last iteration's
-// sub-path samples and their chain distributions (MPG Sec. 5.5). Built from
+// sub-path samples and their chain distributions (MPG Secs. 5.5-5.6). Built from
 // Python between training iterations; queried by the renderer (read-only,
 // thread-safe). Two structures (paper Fig. 14, supplemental Sec. 3.3):
 //  - stree (the paper's): the 6D STree, one ChainDistribution per leaf;

@@ -1,5 +1,5 @@
 // Exact k-nearest-neighbour search in the normalised 6D (x_D, x_L) space: the
-// KNN spatial structure of the MPG paper's ablation (Sec. 6.3 / Fig. 14,
+// KNN spatial structure of the MPG paper's ablation (Sec. 6.2 / Fig. 14,
 // supplemental Sec. 3.3: a 6D kd-tree with accurate search, the chain
 // distribution built from the neighbours on every query).
 #pragma once

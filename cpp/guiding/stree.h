@@ -1,4 +1,4 @@
-// The 6D spatial tree over (x_D, x_L) of MPG (Sec. 5.5, supplemental Sec. 3.3):
+// The 6D spatial tree over (x_D, x_L) of MPG (Sec. 5.6, supplemental Sec. 3.3):
 // a binary tree splitting at the midpoint and cycling the six axes while a
 // node holds more than c sqrt(|S|) unfiltered samples (or a fixed threshold,
 // supplemental Fig. 2), with one of three spatial filters (paper Fig. 14,
@@ -38,7 +38,7 @@ struct STreeConfig {
   float c = 1.f;           // split while a node holds more than c sqrt(|S|) unfiltered samples
   float epsilon = 0.1f;    // filter width; 0 disables filtering
   STreeFilter filter = STreeFilter::Nearest;
-  int threshold = 0;       // a fixed split threshold; 0: c sqrt(|S|) (MPG Sec. 5.5)
+  int threshold = 0;       // a fixed split threshold; 0: c sqrt(|S|) (MPG Sec. 5.6, footnote 8)
   int max_depth = 36;      // depth cap (6 levels per halving of every axis; at most 60)
   int threads = 2;         // build threads (the result does not depend on it)
 };
