@@ -32,13 +32,30 @@ def test_subpath_sample_is_40_bytes():
     assert _core.SUBPATH_SAMPLE_BYTES == 40
 
 
+def _build(xD, xL, d, n, tau, w, **kw):
+    g = _core.GuidingState()
+    g.build(xD, xL, d, n, tau, w, [-1, -1, -1], [1, 1, 1], **kw)
+    return g
+
+
+def _normalised(g, xD, xL):
+    return np.array([g.normalise(a, b) for a, b in zip(xD, xL)], dtype=np.float32).reshape(-1, 6)
+
+
+def _box_distance(q, lo, hi):
+    """Per-axis distance of points q (k x 6) from the box [lo, hi] (0 inside)."""
+    return np.maximum(np.maximum(lo - q, 0), q - hi)
+
+
 @pytest.mark.parametrize("eps", [0.0, 0.1, 0.3])
 def test_stree_invariants(eps):
+    """Nearest filtering (supplemental Sec. 3.3): unfiltered samples in their
+    leaf, at most the threshold of them per leaf, copies within 2 eps x the
+    extent of their box, every sample unfiltered exactly once."""
     N = 20000
     xD, xL, d, n, tau, w = _samples(N)
-    g = _core.GuidingState()
-    g.build(xD, xL, d, n, tau, w, [-1, -1, -1], [1, 1, 1], c=1.0, epsilon=eps, max_depth=36)
-    assert g.num_leaves > 10
+    g = _build(xD, xL, d, n, tau, w, c=1.0, epsilon=eps, max_depth=36)
+    assert g.num_leaves > 10 and g.filter == "nearest" and g.structure == "stree"
     total_unfiltered = 0
     copies = 0
     for i in range(g.num_leaves):
@@ -46,8 +63,8 @@ def test_stree_invariants(eps):
         lo, hi = np.array(leaf["lo"]), np.array(leaf["hi"])
         filt = leaf["filtered"]
         k = len(filt)
-        # leaf sizes respect the threshold unless the depth cap stopped them
-        assert k <= g.threshold or leaf["depth"] >= 36
+        # filtered copies do not count toward the split threshold
+        assert leaf["unfiltered"] <= g.threshold or leaf["depth"] >= 36
         assert leaf["unfiltered"] == int((~filt).sum())
         total_unfiltered += leaf["unfiltered"]
         copies += int(filt.sum())
@@ -57,8 +74,11 @@ def test_stree_invariants(eps):
             # every unfiltered sample lies in its own leaf ...
             assert inside[~filt].all()
             # ... and every filtered copy within 2 eps x the extent of its box
-            dist = np.maximum(np.maximum(lo - q, 0), q - hi) / (hi - lo)
+            dist = _box_distance(q, lo, hi) / (hi - lo)
             assert (dist[filt] <= 2 * eps + 1e-5).all()
+            # a sample has at most one copy per leaf (copies are never copied again)
+            fx = np.concatenate([leaf["xD"][filt], leaf["xL"][filt]], axis=1)
+            assert len(np.unique(fx, axis=0)) == len(fx)
     # each sample is stored unfiltered exactly once; copies only with filtering
     assert total_unfiltered == N
     assert (copies > 0) == (eps > 0)
@@ -67,6 +87,198 @@ def test_stree_invariants(eps):
     for j in range(0, N, 997):
         leaf = g.leaf(g.leaf_of(xD[j].tolist(), xL[j].tolist()))
         assert np.any(np.all(np.isclose(leaf["xD"], xD[j]), axis=1) & ~leaf["filtered"])
+
+
+def _reference_stree(q, thr, eps, max_depth=36):
+    """The nearest-filter build rule of supplemental Sec. 3.3 written out in
+    numpy (float32 like the C++ code): leaves as (box, unfiltered ids, copy ids)."""
+    f32 = np.float32
+    eps = f32(eps)
+    leaves = []
+
+    def rec(U, F, depth, lo, hi):
+        k = len(U)
+        if k <= thr or depth >= max_depth:
+            leaves.append((lo, hi, set(U.tolist()), set(F.tolist())))
+            return
+        a = depth % 6
+        mid = f32(0.5) * (lo[a] + hi[a])
+        x = q[:, a]
+        margin = (f32(2) * eps * (mid - lo[a]), f32(2) * eps * (hi[a] - mid))
+        side = [U[x[U] < mid], U[x[U] >= mid]]
+        fl, fr = F[x[F] < mid], F[x[F] >= mid]
+        newF = [list(fl[(lo[a] - x[fl]) <= margin[0]]), list(fr[(x[fr] - hi[a]) <= margin[1]])]
+        m = int(np.floor(eps * f32(k)))
+        for c in (0, 1):
+            o = 1 - c
+            dist = np.abs(x[side[c]] - mid)
+            cand = side[c][dist <= margin[o]]
+            dc = np.abs(x[cand] - mid)
+            newF[o] += list(cand[np.argsort(dc, kind="stable")[:m]])
+        for c in (0, 1):
+            clo, chi = lo.copy(), hi.copy()
+            if c == 0:
+                chi[a] = mid
+            else:
+                clo[a] = mid
+            rec(side[c], np.array(newF[c], dtype=np.int64), depth + 1, clo, chi)
+
+    rec(np.arange(len(q)), np.zeros(0, np.int64), 0, np.zeros(6, f32), np.ones(6, f32))
+    return leaves
+
+
+@pytest.mark.parametrize("eps", [0.1, 0.3])
+def test_stree_matches_reference_filtering_rule(eps):
+    """Leaf by leaf the same unfiltered samples and the same filtered copies as
+    an independent numpy implementation of the rule (nearest floor(eps k) of
+    each side, k the node's unfiltered count, copies never copied again and not
+    counted toward the threshold, far copies dropped)."""
+    N = 3000
+    xD, xL, d, n, tau, w = _samples(N, seed=7)
+    g = _build(xD, xL, d, n, tau, w, c=1.0, epsilon=eps)
+    q = _normalised(g, xD, xL)
+    ref = _reference_stree(q, g.threshold, eps)
+    assert g.num_leaves == len(ref)
+    key = {tuple(np.concatenate([xD[i], xL[i]]).tolist()): i for i in range(N)}
+    for i, (lo, hi, U, F) in enumerate(ref):
+        leaf = g.leaf(i)
+        assert np.allclose(leaf["lo"], lo) and np.allclose(leaf["hi"], hi)
+        ids = [key[tuple(np.concatenate([a, b]).tolist())] for a, b in zip(leaf["xD"], leaf["xL"])]
+        filt = leaf["filtered"]
+        assert {j for j, f in zip(ids, filt) if not f} == U
+        assert sorted(j for j, f in zip(ids, filt) if f) == sorted(F)
+
+
+def test_stree_without_filtering_and_fixed_threshold():
+    """filter=none: no copies, every sample in its leaf; a fixed threshold
+    (supplemental Fig. 2's 'Fixed (k=512)') replaces c sqrt(|S|)."""
+    N = 20000
+    xD, xL, d, n, tau, w = _samples(N)
+    for kw in ({"filter": "none"}, {"filter": "none", "threshold": 512}, {"threshold": 512}):
+        g = _build(xD, xL, d, n, tau, w, **kw)
+        if "threshold" in kw:
+            assert g.threshold == 512
+        else:
+            assert g.threshold == pytest.approx(np.sqrt(N))
+        total = 0
+        for i in range(g.num_leaves):
+            leaf = g.leaf(i)
+            filt = leaf["filtered"]
+            assert leaf["unfiltered"] <= g.threshold or leaf["depth"] >= 36
+            total += leaf["unfiltered"]
+            if kw.get("filter") == "none":
+                assert not filt.any()
+                q = _normalised(g, leaf["xD"], leaf["xL"])
+                assert (_box_distance(q, np.array(leaf["lo"]), np.array(leaf["hi"])) <= 1e-6).all()
+        assert total == N
+        if kw.get("filter") == "none":
+            assert g.samples_stored == N
+    g = _build(xD, xL, d, n, tau, w, filter="none")
+    assert g.num_leaves == _build(xD, xL, d, n, tau, w, epsilon=0.0).num_leaves
+
+
+@pytest.mark.parametrize("eps", [0.1, 0.3])
+def test_stree_stochastic_filter(eps):
+    """Stochastic filtering (Mueller 2019): the tree of filter=none, no copies,
+    every sample stored once, within eps x the extent of the leaf of its own
+    position from the leaf that holds it (the leaf of its jittered position);
+    some samples do move."""
+    N = 20000
+    xD, xL, d, n, tau, w = _samples(N)
+    g = _build(xD, xL, d, n, tau, w, filter="stochastic", epsilon=eps)
+    g0 = _build(xD, xL, d, n, tau, w, filter="none")
+    assert g.num_leaves == g0.num_leaves and g.samples_stored == N
+    moved = 0
+    total = 0
+    for i in range(g.num_leaves):
+        leaf = g.leaf(i)
+        assert leaf["lo"] == g0.leaf(i)["lo"] and leaf["hi"] == g0.leaf(i)["hi"]
+        assert not leaf["filtered"].any()
+        total += leaf["unfiltered"]
+        if leaf["unfiltered"] == 0:
+            continue
+        q = _normalised(g, leaf["xD"], leaf["xL"])
+        own = [g0.leaf(g0.leaf_of(a.tolist(), b.tolist())) for a, b in zip(leaf["xD"], leaf["xL"])]
+        ext = np.array([np.array(o["hi"]) - np.array(o["lo"]) for o in own])
+        dist = _box_distance(q, np.array(leaf["lo"]), np.array(leaf["hi"]))
+        assert (dist <= eps * ext + 1e-6).all()
+        moved += int((dist > 0).any(axis=1).sum())
+    assert total == N
+    # about 1 - (1 - eps/2)^6 of them move for a density uniform within leaves
+    expect = N * (1 - (1 - eps / 2) ** 6)
+    assert 0.5 * expect < moved < 1.5 * expect
+
+
+def _shuffled(arrays, seed):
+    p = np.random.default_rng(seed).permutation(len(arrays[0]))
+    return [a[p] for a in arrays]
+
+
+@pytest.mark.parametrize("kw", [{}, {"filter": "stochastic"}, {"filter": "none"}, {"threshold": 300},
+                                {"structure": "knn", "knn_k": 50}])
+def test_guiding_state_is_independent_of_order_and_threads(kw):
+    """The same samples in any order, built on 1 or 2 threads, give the same
+    tree, the same leaf contents in the same order and bit-identical
+    distributions (the renderer's threads deliver samples in any order)."""
+    N = 40000
+    arrays = list(_samples(N, seed=2))
+    ga = _build(*arrays, threads=2, **kw)
+    gb = _build(*_shuffled(arrays, 9), threads=1, **kw)
+    gc = _build(*_shuffled(arrays, 10), threads=2, **kw)
+    assert ga.num_leaves == gb.num_leaves == gc.num_leaves
+    assert ga.samples_stored == gb.samples_stored == gc.samples_stored
+    for i in range(ga.num_leaves):
+        la, lb, lc = ga.leaf(i), gb.leaf(i), gc.leaf(i)
+        for key in ("xD", "xL", "filtered"):
+            assert np.array_equal(la[key], lb[key]) and np.array_equal(la[key], lc[key])
+        if len(la["filtered"]) and i % 7 == 0:
+            dirs = arrays[2][:64]
+            for k in (1, 2, 3):
+                assert ga.pmf_n(i, k) == gb.pmf_n(i, k) == gc.pmf_n(i, k)
+                for t in range(1 << k):
+                    pa = ga.pdf_dir(i, k, t, dirs)
+                    assert np.array_equal(pa, gb.pdf_dir(i, k, t, dirs))
+                    assert np.array_equal(pa, gc.pdf_dir(i, k, t, dirs))
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        a, b = rng.uniform(-1, 1, 3).tolist(), rng.uniform(-1, 1, 3).tolist()
+        assert ga.query_pmf_n(a, b) == gb.query_pmf_n(a, b) == gc.query_pmf_n(a, b)
+
+
+def test_knn_structure_matches_brute_force():
+    """guide_structure=knn: the distribution of a query is built from exactly
+    its k nearest samples in the normalised 6D space (brute force in numpy)."""
+    N, K = 20000, 200
+    xD, xL, d, n, tau, w = _samples(N, seed=3)
+    g = _build(xD, xL, d, n, tau, w, structure="knn", knn_k=K)
+    assert g.structure == "knn" and g.knn_k == K and g.num_leaves == 0 and g.valid
+    assert _build(xD, xL, d, n, tau, w, structure="knn").knn_k == int(np.ceil(np.sqrt(N)))
+    q = _normalised(g, xD, xL).astype(np.float64)
+    rng = np.random.default_rng(5)
+    for j in range(25):
+        if j < 10:  # at sample positions and at random points
+            a, b = xD[j * 101], xL[j * 101]
+        else:
+            a, b = rng.uniform(-1, 1, 3).astype(np.float32), rng.uniform(-1, 1, 3).astype(np.float32)
+        p = np.array(g.normalise(a.tolist(), b.tolist()), dtype=np.float64)
+        dist = ((q - p) ** 2).sum(axis=1)
+        nn = np.argsort(dist, kind="stable")[:K]
+        # the C++ neighbours (indices into its canonical order) are the same samples
+        got = g.knn_neighbours(a.tolist(), b.tolist())
+        assert len(got) == K
+        wn = np.array([w[nn][n[nn] == k].sum() for k in range(1, 17)], dtype=np.float64)
+        pmf = g.query_pmf_n(a.tolist(), b.tolist())
+        assert np.allclose(pmf, wn / wn.sum(), atol=1e-5)
+        assert np.sort(dist)[K - 1] < np.sort(dist)[K]  # (the k-th distance is not tied)
+
+
+def test_guiding_state_rejects_bad_options():
+    xD, xL, d, n, tau, w = _samples(100)
+    for kw, msg in (({"filter": "box"}, "stree_filter"), ({"structure": "kdtree"}, "guide_structure"),
+                    ({"threshold": -1}, "stree_threshold"), ({"knn_k": -5}, "knn_k"),
+                    ({"epsilon": 0.7}, "epsilon")):
+        with pytest.raises(ValueError, match=msg):
+            _build(xD, xL, d, n, tau, w, **kw)
 
 
 def test_pmfs_are_normalised():
@@ -126,6 +338,9 @@ def _zmax(a, b, regions):
     ("slab_glass.xml", {}),
     ("sphere_glass.xml", {"selective": True}),
     ("sphere_glass.xml", {"guide_n": False}),
+    ("sphere_glass.xml", {"stree_filter": "none"}),
+    ("sphere_glass.xml", {"stree_filter": "stochastic"}),
+    ("sphere_glass.xml", {"guide_structure": "knn", "knn_k": 200}),
 ])
 def test_mpg_is_unbiased_against_path_tracing(scene, params, scenes_dir):
     """Guided (after training) renders agree with the path tracer: |z| < 5 on
@@ -143,6 +358,14 @@ def test_mpg_is_unbiased_against_path_tracing(scene, params, scenes_dir):
     assert st["rejected_samples"] == 0
     regions = [np.s_[:, :]] + [np.s_[i:i + 8, j:j + 8] for i in (0, 8, 16) for j in (0, 8, 16)]
     assert _zmax(img, ref, regions) < 5
+
+
+def test_mpg_rejects_unknown_guiding_options(scenes_dir):
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="8")
+    for params, msg in (({"stree_filter": "box"}, "stree_filter"), ({"guide_structure": "sdtree"}, "guide_structure"),
+                        ({"stree_threshold": -3}, "stree_threshold"), ({"knn_k": "many"}, "knn_k")):
+        with pytest.raises(mpg.RenderError, match=msg):
+            mpg.render(sc, integrator=dict(params, type="mpg"), spp=4, seed=1, progress=False)
 
 
 def test_mpg_does_no_guiding_work_without_caustics():

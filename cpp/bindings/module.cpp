@@ -4,6 +4,7 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
+#include <chrono>
 #include <memory>
 #include <stdexcept>
 
@@ -157,6 +158,20 @@ py::dict pass_to_dict(PassResult& r) {
 }
 
 WalkConfig walk_config(const py::dict& p);
+
+GuideConfig guide_config(float c, float epsilon, int max_depth, int threads, const std::string& filter,
+                         int threshold, const std::string& structure, int knn_k) {
+  GuideConfig cfg;
+  cfg.stree.c = c;
+  cfg.stree.epsilon = epsilon;
+  cfg.stree.max_depth = max_depth;
+  cfg.stree.threads = std::max(1, threads);
+  cfg.stree.filter = parse_stree_filter(filter);
+  cfg.stree.threshold = threshold;
+  cfg.structure = parse_guide_structure(structure);
+  cfg.knn_k = knn_k;
+  return cfg;  // ranges are checked by GuidingState::build
+}
 
 std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, const std::string& type,
                                             const py::dict& p) {
@@ -596,20 +611,29 @@ PYBIND11_MODULE(_core, m) {
   py::class_<GuidingState, std::shared_ptr<GuidingState>>(m, "GuidingState")
       .def(py::init<>())
       .def("build_from", [](GuidingState& g, const std::vector<std::shared_ptr<SubpathBuffer>>& bufs,
-                            py::object bmin, py::object bmax, float c, float epsilon, int max_depth, int threads) {
+                            py::object bmin, py::object bmax, float c, float epsilon, int max_depth, int threads,
+                            const std::string& filter, int threshold, const std::string& structure, int knn_k) {
         std::vector<SubpathSample> all;
+        size_t total = 0;
+        for (const auto& b : bufs) total += b->v.size();
+        all.reserve(total);
         for (const auto& b : bufs) all.insert(all.end(), b->v.begin(), b->v.end());
-        STreeConfig cfg; cfg.c = c; cfg.epsilon = epsilon; cfg.max_depth = max_depth;
+        const GuideConfig cfg = guide_config(c, epsilon, max_depth, threads, filter, threshold, structure, knn_k);
         const Vec3 lo = vec3(bmin), hi = vec3(bmax);
         py::gil_scoped_release nogil;
-        g.build(all, lo, hi, cfg, threads);
+        g.build(all, lo, hi, cfg);
         return all.size();
       }, py::arg("buffers"), py::arg("bmin"), py::arg("bmax"), py::arg("c") = 1.f, py::arg("epsilon") = 0.1f,
-         py::arg("max_depth") = 36, py::arg("threads") = 2)
+         py::arg("max_depth") = 36, py::arg("threads") = 2, py::arg("filter") = "nearest", py::arg("threshold") = 0,
+         py::arg("structure") = "stree", py::arg("knn_k") = 0,
+         "Build from training buffers. filter: nearest | stochastic | none (stree_filter); threshold: a fixed "
+         "split threshold, 0 = c sqrt(|S|) (stree_threshold); structure: stree | knn (guide_structure); "
+         "knn_k: neighbours per kNN query, 0 = ceil(c sqrt(|S|)).")
       .def("build", [](GuidingState& g, const FArray& xD, const FArray& xL, const FArray& dirs,
                        py::array_t<int, py::array::c_style | py::array::forcecast> n,
                        py::array_t<uint16_t, py::array::c_style | py::array::forcecast> tau, const FArray& weight,
-                       py::object bmin, py::object bmax, float c, float epsilon, int max_depth, int threads) {
+                       py::object bmin, py::object bmax, float c, float epsilon, int max_depth, int threads,
+                       const std::string& filter, int threshold, const std::string& structure, int knn_k) {
         const auto pd = rows3(xD, "xD"), pl = rows3(xL, "xL"), dd = rows3(dirs, "dirs");
         const size_t N = pd.size();
         if (pl.size() != N || dd.size() != N || size_t(n.size()) != N || size_t(tau.size()) != N ||
@@ -626,39 +650,73 @@ PYBIND11_MODULE(_core, m) {
           x.weight = weight.data()[i];
           x.flags = 0;
         }
-        if (!(epsilon >= 0.f && epsilon < 0.5f)) throw std::invalid_argument("epsilon must be in [0, 0.5)");
-        if (!(c > 0.f)) throw std::invalid_argument("c must be positive");
-        STreeConfig cfg; cfg.c = c; cfg.epsilon = epsilon; cfg.max_depth = max_depth;
+        const GuideConfig cfg = guide_config(c, epsilon, max_depth, threads, filter, threshold, structure, knn_k);
         const Vec3 lo = vec3(bmin), hi = vec3(bmax);  // with the GIL held
         py::gil_scoped_release nogil;
-        g.build(s, lo, hi, cfg, threads);
+        g.build(s, lo, hi, cfg);
       }, py::arg("xD"), py::arg("xL"), py::arg("dirs"), py::arg("n"), py::arg("tau"), py::arg("weight"),
          py::arg("bmin"), py::arg("bmax"), py::arg("c") = 1.f, py::arg("epsilon") = 0.1f,
-         py::arg("max_depth") = 36, py::arg("threads") = 2)
+         py::arg("max_depth") = 36, py::arg("threads") = 2, py::arg("filter") = "nearest", py::arg("threshold") = 0,
+         py::arg("structure") = "stree", py::arg("knn_k") = 0)
       .def_property_readonly("num_leaves", [](const GuidingState& g) { return g.tree().num_leaves(); })
       .def_property_readonly("num_nodes", [](const GuidingState& g) { return g.tree().num_nodes(); })
-      .def_property_readonly("samples_stored", [](const GuidingState& g) { return g.tree().num_samples_stored(); })
+      .def_property_readonly("samples_stored", [](const GuidingState& g) { return g.num_samples_stored(); })
+      .def_property_readonly("structure", [](const GuidingState& g) { return guide_structure_name(g.config().structure); })
+      .def_property_readonly("filter", [](const GuidingState& g) { return stree_filter_name(g.config().stree.filter); })
+      .def_property_readonly("knn_k", [](const GuidingState& g) { return g.knn_k(); })
+      .def_property_readonly("valid", &GuidingState::valid)
+      .def("query_pmf_n", [](const GuidingState& g, py::object xD, py::object xL) -> py::object {
+        // P_e(n), n = 1..16, of the distribution the renderer gets for (x_D, x_L); None without one
+        const Vec3 a = vec3(xD), b = vec3(xL);
+        const ChainDistribution* d = g.query(a, b);
+        if (!d) return py::none();
+        std::vector<float> p(ChainDistribution::kMaxN);
+        for (int n = 1; n <= ChainDistribution::kMaxN; ++n) p[size_t(n - 1)] = d->pmf_n(n);
+        return py::cast(p);
+      })
+      .def("time_queries", [](const GuidingState& g, const FArray& xD, const FArray& xL) {
+        // Seconds for query() of every (x_D, x_L) row on this thread (benchmarks):
+        // the leaf lookup for stree, the k-NN search and distribution build for knn.
+        const auto pd = rows3(xD, "xD"), pl = rows3(xL, "xL");
+        if (pd.size() != pl.size()) throw std::invalid_argument("xD and xL must have the same length");
+        py::gil_scoped_release nogil;
+        const auto t0 = std::chrono::steady_clock::now();
+        size_t found = 0;
+        for (size_t i = 0; i < pd.size(); ++i) found += g.query(pd[i], pl[i]) != nullptr;
+        const double sec = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        return std::make_pair(sec, found);
+      })
+      .def("knn_neighbours", [](const GuidingState& g, py::object xD, py::object xL) {
+        if (g.config().structure != GuideStructure::Knn) throw std::invalid_argument("not a knn guiding state");
+        std::vector<uint32_t> out;
+        g.knn_neighbours(vec3(xD), vec3(xL), out);
+        return out;
+      })
       .def_property_readonly("threshold", [](const GuidingState& g) { return g.tree().threshold(); })
       .def_property_readonly("build_seconds", &GuidingState::build_seconds)
+      .def_property_readonly("structure_seconds", &GuidingState::structure_seconds)
       .def("leaf_of", [](const GuidingState& g, py::object xD, py::object xL) { return g.tree().leaf_of(vec3(xD), vec3(xL)); })
       .def("leaf", [](const GuidingState& g, int i) {
         if (i < 0 || size_t(i) >= g.tree().num_leaves()) throw std::out_of_range("leaf index");
         const STree::Leaf& l = g.tree().leaf(i);
-        const ssize_t k = ssize_t(l.samples.size());
+        const ssize_t k = ssize_t(l.size());
         FArray xd(std::vector<ssize_t>{k, 3}), xl(std::vector<ssize_t>{k, 3});
         py::array_t<bool> filt(std::vector<ssize_t>{k});
-        for (ssize_t j = 0; j < k; ++j) {
-          const SubpathSample& s = l.samples[size_t(j)];
+        ssize_t j = 0;
+        auto put = [&](const SubpathSample& s, bool f) {
           for (int a = 0; a < 3; ++a) { xd.mutable_at(j, a) = s.xD[a]; xl.mutable_at(j, a) = s.xL[a]; }
-          filt.mutable_at(j) = s.filtered();
-        }
+          filt.mutable_at(j) = f;
+          ++j;
+        };
+        for (const SubpathSample& s : g.tree().unfiltered(i)) put(s, false);
+        for (uint32_t c : g.tree().filtered(i)) put(g.tree().samples()[c], true);
         py::dict r;
         r["xD"] = xd; r["xL"] = xl; r["filtered"] = filt; r["unfiltered"] = l.unfiltered; r["depth"] = l.depth;
         r["lo"] = std::vector<float>(l.lo, l.lo + 6); r["hi"] = std::vector<float>(l.hi, l.hi + 6);
         return r;
       })
       .def("normalise", [](const GuidingState& g, py::object xD, py::object xL) {
-        float q[6]; g.tree().normalise(vec3(xD), vec3(xL), q); return std::vector<float>(q, q + 6); })
+        float q[6]; g.normalise(vec3(xD), vec3(xL), q); return std::vector<float>(q, q + 6); })
       .def("pmf_n", [](const GuidingState& g, int leaf, int n) { return g.distribution(leaf).pmf_n(n); })
       .def("pmf_tau", [](const GuidingState& g, int leaf, int n, uint16_t tau) { return g.distribution(leaf).pmf_tau(n, tau); })
       .def("sample_dir", [](const GuidingState& g, int leaf, int n, uint16_t tau, const FArray& u) {

@@ -2,72 +2,144 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 
 #include "core/warp.h"
 
 namespace mpg {
 
 namespace {
-// Distance from each direction to its nearest other one (chordal), by a sweep
-// over directions sorted along x: O(m log m) plus the window checks.
-std::vector<float> nearest_distances(const std::vector<Vec3>& d) {
-  const size_t m = d.size();
-  std::vector<float> best(m, kInf);
-  std::vector<size_t> order(m);
-  for (size_t i = 0; i < m; ++i) order[i] = i;
-  std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return d[a].x < d[b].x; });
-  for (size_t oi = 0; oi < m; ++oi) {
-    const size_t i = order[oi];
-    for (size_t oj = oi + 1; oj < m; ++oj) {
-      const size_t j = order[oj];
-      const float dx = d[j].x - d[i].x;
-      if (dx >= best[i] && dx >= best[j]) break;
-      const float dist = glm::length(d[i] - d[j]);
-      best[i] = std::min(best[i], dist);
-      best[j] = std::min(best[j], dist);
-    }
+// Exact distance from each direction to its nearest other one (chordal,
+// Eq. 12's sigma_i): directions sorted along the axis of largest spread, and
+// each scans both ways until the gap along that axis alone exceeds the best
+// distance found. Bounded by the neighbours within sigma_i along one axis
+// (O(m log m) for spread-out or clustered directions; exact in every case).
+void nearest_distances(const Vec3* d, size_t m, float* best) {
+  for (size_t i = 0; i < m; ++i) best[i] = kInf;
+  if (m < 2) return;
+  Vec3 lo(kInf), hi(-kInf);
+  for (size_t i = 0; i < m; ++i) {
+    lo = glm::min(lo, d[i]);
+    hi = glm::max(hi, d[i]);
   }
-  return best;
+  const Vec3 ext = hi - lo;
+  const int ax = ext.x >= ext.y && ext.x >= ext.z ? 0 : (ext.y >= ext.z ? 1 : 2);
+  // sort by the coordinate along ax: (order-preserving bits of the float,
+  // index) packed in one integer
+  thread_local std::vector<uint64_t> order;
+  thread_local std::vector<Vec3> p;  // sorted copy: the scans read memory in order
+  thread_local std::vector<float> key;
+  order.resize(m);
+  p.resize(m);
+  key.resize(m);
+  for (size_t i = 0; i < m; ++i) {
+    uint32_t u;
+    const float f = d[i][ax] + 0.f;  // -0 -> +0
+    std::memcpy(&u, &f, 4);
+    u = (u & 0x80000000u) ? ~u : (u | 0x80000000u);
+    order[i] = uint64_t(u) << 32 | uint32_t(i);
+  }
+  std::sort(order.begin(), order.end());
+  for (size_t o = 0; o < m; ++o) {
+    p[o] = d[uint32_t(order[o])];
+    key[o] = p[o][ax];
+  }
+  for (size_t o = 0; o < m; ++o) {
+    float b2 = kInf;  // squared best distance
+    const Vec3 q = p[o];
+    const float k = key[o];
+    for (size_t j = o + 1; j < m; ++j) {
+      const float g = key[j] - k;
+      if (g * g >= b2) break;
+      const Vec3 t = p[j] - q;
+      b2 = std::min(b2, glm::dot(t, t));
+    }
+    for (size_t j = o; j-- > 0;) {
+      const float g = k - key[j];
+      if (g * g >= b2) break;
+      const Vec3 t = p[j] - q;
+      b2 = std::min(b2, glm::dot(t, t));
+    }
+    best[uint32_t(order[o])] = std::sqrt(b2);
+  }
 }
 }  // namespace
 
-void ChainDistribution::build(const std::vector<SubpathSample>& samples) {
+void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uint32_t* idx, size_t nidx) {
+  // Group the samples by (n, tau) in their given order: a small flat table of
+  // group keys (a leaf rarely has more than a few dozen types).
+  struct Group { uint32_t key; uint32_t count = 0; float weight = 0.f; };
+  thread_local std::vector<Group> groups;
+  thread_local std::vector<uint32_t> gid;                 // per accepted sample
+  thread_local std::vector<const SubpathSample*> acc;     // accepted samples
+  groups.clear();
+  gid.clear();
+  acc.clear();
   std::vector<float> wn(kMaxN, 0.f);
-  std::vector<std::map<uint16_t, float>> wt(kMaxN);
-  std::map<std::pair<int, uint16_t>, std::pair<std::vector<Vec3>, std::vector<float>>> groups;
-  for (const SubpathSample& s : samples) {
-    if (s.n < 1 || s.n > kMaxN || !(s.weight > 0.f) || !std::isfinite(s.weight)) continue;
-    wn[size_t(s.n - 1)] += s.weight;                    // Eq. 10
-    wt[size_t(s.n - 1)][s.tau] += s.weight;             // Eq. 11
-    auto& g = groups[{int(s.n), s.tau}];
-    g.first.push_back(oct_decode(Vec2(s.dir[0], s.dir[1])));
-    g.second.push_back(s.weight);
+  uint32_t last = ~0u;
+  auto add = [&](const SubpathSample& s) {
+    if (s.n < 1 || s.n > kMaxN || !(s.weight > 0.f) || !std::isfinite(s.weight)) return;
+    const uint32_t key = uint32_t(s.n - 1) << 16 | s.tau;
+    if (last >= groups.size() || groups[last].key != key) {
+      last = 0;
+      while (last < groups.size() && groups[last].key != key) ++last;
+      if (last == groups.size()) groups.push_back(Group{key});
+    }
+    wn[size_t(s.n - 1)] += s.weight;   // Eq. 10
+    groups[last].weight += s.weight;   // Eq. 11
+    groups[last].count++;
+    gid.push_back(last);
+    acc.push_back(&s);
+  };
+  for (const SubpathSample& s : a) add(s);
+  for (size_t i = 0; i < nidx; ++i) {
+    if (i + 16 < nidx) __builtin_prefetch(base + idx[i + 16]);
+    add(base[idx[i]]);
   }
   n_dist_.build(wn);
+  // groups in (n, tau) order
+  thread_local std::vector<uint32_t> rank;
+  rank.resize(groups.size());
+  for (size_t g = 0; g < groups.size(); ++g) rank[g] = uint32_t(g);
+  std::sort(rank.begin(), rank.end(), [&](uint32_t x, uint32_t y) { return groups[x].key < groups[y].key; });
   tau_keys_.assign(kMaxN, {});
   tau_dist_.assign(kMaxN, DiscreteDistribution());
-  for (int n = 0; n < kMaxN; ++n) {
+  {
     std::vector<float> w;
-    for (const auto& kv : wt[size_t(n)]) {
-      tau_keys_[size_t(n)].push_back(kv.first);
-      w.push_back(kv.second);
+    for (size_t r = 0; r < rank.size();) {
+      const uint32_t n = groups[rank[r]].key >> 16;
+      w.clear();
+      for (; r < rank.size() && (groups[rank[r]].key >> 16) == n; ++r) {
+        tau_keys_[n].push_back(uint16_t(groups[rank[r]].key & 0xffffu));
+        w.push_back(groups[rank[r]].weight);
+      }
+      tau_dist_[n].build(w);
     }
-    tau_dist_[size_t(n)].build(w);
   }
+  // one vMF lobe per sample (Eq. 12), per (n, tau)
   lobes_.clear();
-  for (auto& kv : groups) {
-    Lobes L;
-    L.mu = std::move(kv.second.first);
-    L.weight = std::move(kv.second.second);
-    const std::vector<float> sigma = nearest_distances(L.mu);
-    L.kappa.resize(L.mu.size());
-    for (size_t i = 0; i < L.mu.size(); ++i) {
+  std::vector<Lobes> lobes(groups.size());
+  for (size_t g = 0; g < groups.size(); ++g) {
+    lobes[g].mu.reserve(groups[g].count);
+    lobes[g].weight.reserve(groups[g].count);
+  }
+  for (size_t i = 0; i < acc.size(); ++i) {
+    Lobes& L = lobes[gid[i]];
+    L.mu.push_back(oct_decode(Vec2(acc[i]->dir[0], acc[i]->dir[1])));
+    L.weight.push_back(acc[i]->weight);
+  }
+  for (size_t g = 0; g < groups.size(); ++g) {
+    Lobes& L = lobes[g];
+    const size_t m = L.mu.size();
+    L.kappa.resize(m);
+    nearest_distances(L.mu.data(), m, L.kappa.data());  // sigma_i
+    for (size_t i = 0; i < m; ++i) {
       // Eq. 12: kappa_i = sigma_i^-2 (capped; a lone sample gets a broad lobe)
-      L.kappa[i] = std::isinf(sigma[i]) ? kSingleKappa
-                                        : std::min(kMaxKappa, 1.f / std::max(sigma[i] * sigma[i], 1e-30f));
+      const float sg = L.kappa[i];
+      L.kappa[i] = std::isinf(sg) ? kSingleKappa : std::min(kMaxKappa, 1.f / std::max(sg * sg, 1e-30f));
     }
     L.dist.build(L.weight);
-    lobes_.emplace(kv.first, std::move(L));
+    lobes_.emplace(std::make_pair(int(groups[g].key >> 16) + 1, uint16_t(groups[g].key & 0xffffu)), std::move(L));
   }
 }
 

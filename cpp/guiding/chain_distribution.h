@@ -19,7 +19,12 @@ class ChainDistribution {
   static constexpr float kMaxKappa = 1e8f;
   static constexpr float kSingleKappa = 100.f;  // a lone sample's lobe (sigma = 0.1)
 
-  void build(const std::vector<SubpathSample>& samples);
+  // From the samples of `a` then base[idx[0]], ..., base[idx[nidx - 1]] (a
+  // leaf's unfiltered samples and its filtered copies); the result depends on
+  // their order only through floating-point rounding of the sums, so callers
+  // pass a canonical order.
+  void build(SampleSpan a, const SubpathSample* base = nullptr, const uint32_t* idx = nullptr, size_t nidx = 0);
+  void build(const std::vector<SubpathSample>& samples) { build(SampleSpan{samples.data(), samples.size()}); }
   bool empty() const { return n_dist_.empty(); }
 
   int sample_n(float u) const;

@@ -4,9 +4,12 @@
 // 40 bytes: positions as floats, omega_D octahedral-encoded.
 #pragma once
 
+#include <cstddef>
 #include <cstdint>
+#include <cstring>
 
 #include "core/math.h"
+#include "core/rng.h"
 
 namespace mpg {
 
@@ -25,6 +28,34 @@ struct SubpathSample {
   Vec3 pL() const { return Vec3(xL[0], xL[1], xL[2]); }
 };
 static_assert(sizeof(SubpathSample) == 40, "SubpathSample must stay 40 bytes");
+
+// A read-only view of contiguous samples.
+struct SampleSpan {
+  const SubpathSample* data = nullptr;
+  size_t size = 0;
+  const SubpathSample* begin() const { return data; }
+  const SubpathSample* end() const { return data + size; }
+};
+
+// A 64-bit hash of a sample's content (the flags excluded). It gives the
+// samples a canonical order, so that the guiding state built from a set of
+// samples does not depend on the order the renderer's threads delivered them
+// in, and it seeds the per-sample jitter of stochastic filtering.
+inline uint64_t content_key(const SubpathSample& s) {
+  SubpathSample c = s;
+  c.flags = 0;
+  uint64_t w[5];
+  std::memcpy(w, &c, sizeof(w));
+  uint64_t h = 0x51ed270b27ad5f3bULL;
+  for (uint64_t x : w) h = mix64(h ^ x);
+  return h;
+}
+// A total order on sample contents (ties of the key broken by the bytes;
+// samples equal in both are interchangeable).
+inline bool canonical_less(uint64_t ka, const SubpathSample& a, uint64_t kb, const SubpathSample& b) {
+  if (ka != kb) return ka < kb;
+  return std::memcmp(&a, &b, sizeof(SubpathSample)) < 0;
+}
 
 // Octahedral encoding of unit vectors (Meyer et al. 2010; Cigolle et al. 2014, JCGT 3(2)).
 inline Vec2 oct_encode(const Vec3& v) {

@@ -16,6 +16,9 @@ from typing import Any
 
 from mpg.errors import RenderError
 
+STREE_FILTERS = ("nearest", "stochastic", "none")
+GUIDE_STRUCTURES = ("stree", "knn")
+
 
 def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
                seed: int, threads: int | None, progress: bool | None):
@@ -25,6 +28,14 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     frac = float(params.pop("training_fraction", 0.3))
     c = float(params.pop("stree_c", 1.0))
     eps = float(params.pop("stree_epsilon", 0.1))
+    # Ablations (paper Fig. 14, supplemental Figs. 1-2): spatial filter,
+    # split threshold, spatial structure (STree or exact kNN).
+    structure_kw = dict(
+        filter=str(params.pop("stree_filter", "nearest")),
+        threshold=int(params.pop("stree_threshold", 0)),
+        structure=str(params.pop("guide_structure", "stree")),
+        knn_k=int(params.pop("knn_k", 0)),
+    )
     init = str(params.pop("init", "surface"))
     n_photons = int(params.pop("photons", 200_000))
     if not 0.0 <= frac < 1.0:
@@ -33,6 +44,20 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         raise RenderError(f"init must be 'surface' or 'photon', got '{init}'")
     if n_photons < 1:
         raise RenderError(f"photons must be >= 1, got {n_photons}")
+    if not c > 0.0:
+        raise RenderError(f"stree_c must be positive, got {c}")
+    if not 0.0 <= eps < 0.5:
+        raise RenderError(f"stree_epsilon must be in [0, 0.5), got {eps}")
+    if structure_kw["filter"] not in STREE_FILTERS:
+        raise RenderError(f"unknown stree_filter '{structure_kw['filter']}' "
+                          f"(expected {', '.join(STREE_FILTERS)})")
+    if structure_kw["structure"] not in GUIDE_STRUCTURES:
+        raise RenderError(f"unknown guide_structure '{structure_kw['structure']}' "
+                          f"(expected {', '.join(GUIDE_STRUCTURES)})")
+    if structure_kw["threshold"] < 0:
+        raise RenderError(f"stree_threshold must be >= 0 (0: c sqrt(|S|)), got {structure_kw['threshold']}")
+    if structure_kw["knn_k"] < 0:
+        raise RenderError(f"knn_k must be >= 0 (0: c sqrt(|S|)), got {structure_kw['knn_k']}")
     core = scene.core
     bmin, bmax = core.bbox
     show = (sys.stderr.isatty() if progress is None else progress)
@@ -57,7 +82,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             photon_samples = len(buf)
             if photon_samples > 0:
                 state = _core.GuidingState()
-                state.build_from([buf], bmin, bmax, c=c, epsilon=eps, threads=threads or 2)
+                state.build_from([buf], bmin, bmax, c=c, epsilon=eps, threads=threads or 2,
+                                     **structure_kw)
                 build_seconds += state.build_seconds
                 leaves = state.num_leaves
                 guide = state
@@ -86,7 +112,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             samples_last = len(buf)
             if samples_last > 0:
                 state = _core.GuidingState()
-                state.build_from([buf], bmin, bmax, c=c, epsilon=eps, threads=threads or 2)
+                state.build_from([buf], bmin, bmax, c=c, epsilon=eps, threads=threads or 2,
+                                     **structure_kw)
                 build_seconds += state.build_seconds
                 leaves = state.num_leaves
                 guide = state
@@ -120,6 +147,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["photon_samples"] = photon_samples
     st["seconds_photons"] = seconds_photons
     st["guide_leaves"] = leaves
+    st["guide_structure"] = structure_kw["structure"]
+    st["stree_filter"] = structure_kw["filter"]
     st["guide_bytes"] = samples_last * _core.SUBPATH_SAMPLE_BYTES
     st["seconds"] = _time.monotonic() - t0
     est = st.get("chain_estimates", 0) + st.get("chain_inactive", 0)
