@@ -204,3 +204,13 @@ def test_bad_render_arguments(kw):
     sc = mpg.load_file(mpg.default_scene_path(), res_x="8", res_y="8")
     with pytest.raises(mpg.RenderError):
         mpg.render(sc, progress=False, **kw)
+
+
+def test_a_budget_shorter_than_one_pass_still_gives_an_image():
+    """A time limit below one pass's time finishes that first pass (1 spp)
+    instead of returning an empty image; a later pass cut by the limit is
+    dropped whole and stops within a sample, not a tile."""
+    sc = mpg.load_file(mpg.default_scene_path(), res_x="64", res_y="48")
+    img = mpg.render(sc, integrator="sms_star", time=1e-3, progress=False)
+    assert img.spp >= 1 and img.stats["time_limited"]
+    assert np.isfinite(img.rgb).all() and img.rgb.max() > 0

@@ -69,6 +69,11 @@ void RenderJob::run() {
           const uint64_t pixel = uint64_t(fy) * uint64_t(cam.width) + uint64_t(fx);
           double s[3] = {0, 0, 0}, s2[3] = {0, 0, 0};
           for (int k = 0; k < cfg_.spp; ++k) {
+            // A cancelled pass is dropped whole (never splatted), so stopping
+            // mid-tile is safe; checking per sample bounds the overshoot of a
+            // time limit by one sample, not one tile (a tile of chain
+            // estimates took seconds).
+            if (cancel_.load(std::memory_order_relaxed)) return;
             PCG32 rng = make_stream(cfg_.seed, cfg_.pass, pixel, uint64_t(k));
             const float ox = cam.filter.sample(rng.next_float());
             const float oy = cam.filter.sample(rng.next_float());

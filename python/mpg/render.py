@@ -211,7 +211,9 @@ def render(
     """Render `scene` and return an Image.
 
     spp: samples per pixel (default: the scene's sampler sample_count, when no time is given).
-    time: wall-clock budget in seconds; with spp too, whichever comes first.
+    time: wall-clock budget in seconds; with spp too, whichever comes first. The first
+        pass always finishes (a budget shorter than one pass gives a 1-spp image);
+        later passes stop within one sample of the limit and are dropped whole.
     The image is bit-identical for a given (seed, spp) whatever the thread count.
     Ctrl-C stops the render and returns what was accumulated (stats['interrupted']).
     """
@@ -270,7 +272,10 @@ def render(
             try:
                 while not job.wait(0.05):
                     el = _time.monotonic() - t0
-                    if time is not None and el > time:
+                    # The time limit cancels a pass once one has finished: a
+                    # budget shorter than one pass still gives a 1-spp image,
+                    # not an empty one (it overruns by at most that pass).
+                    if time is not None and el > time and done > 0:
                         job.cancel()
                         cancelled_by_time = True
                     if spp is not None:
