@@ -608,6 +608,13 @@ PYBIND11_MODULE(_core, m) {
         return r;
       });
 
+  m.def("check_guide_config", [](float c, float epsilon, const std::string& filter, int threshold,
+                                  const std::string& structure, int knn_k) {
+    validate(guide_config(c, epsilon, 36, 1, filter, threshold, structure, knn_k));
+  }, py::arg("c") = 1.f, py::arg("epsilon") = 0.1f, py::arg("filter") = "nearest", py::arg("threshold") = 0,
+     py::arg("structure") = "stree", py::arg("knn_k") = 0,
+     "Raise ValueError naming the parameter when GuidingState.build would reject these options.");
+
   py::class_<GuidingState, std::shared_ptr<GuidingState>>(m, "GuidingState")
       .def(py::init<>())
       .def("build_from", [](GuidingState& g, const std::vector<std::shared_ptr<SubpathBuffer>>& bufs,

@@ -32,15 +32,23 @@ struct KnnCache {
 };
 }  // namespace
 
+void validate(const GuideConfig& cfg) {
+  const STreeConfig& sc = cfg.stree;
+  auto bad = [](const std::string& what, const std::string& got) {
+    throw std::invalid_argument(what + ", got " + got);
+  };
+  if (!(sc.epsilon >= 0.f && sc.epsilon < 0.5f)) bad("stree_epsilon must be in [0, 0.5)", std::to_string(sc.epsilon));
+  if (!(sc.c > 0.f)) bad("stree_c must be positive", std::to_string(sc.c));
+  if (sc.threshold < 0) bad("stree_threshold must be >= 0 (0: c sqrt(|S|))", std::to_string(sc.threshold));
+  if (sc.max_depth < 0) bad("max_depth must be >= 0", std::to_string(sc.max_depth));
+  if (cfg.knn_k < 0) bad("knn_k must be >= 0 (0: c sqrt(|S|))", std::to_string(cfg.knn_k));
+}
+
 void GuidingState::build(const std::vector<SubpathSample>& samples, const Vec3& bmin, const Vec3& bmax,
                          const GuideConfig& cfg) {
   const auto t0 = std::chrono::steady_clock::now();
   const STreeConfig& sc = cfg.stree;
-  if (!(sc.epsilon >= 0.f && sc.epsilon < 0.5f)) throw std::invalid_argument("stree_epsilon must be in [0, 0.5)");
-  if (!(sc.c > 0.f)) throw std::invalid_argument("stree_c must be positive");
-  if (sc.threshold < 0) throw std::invalid_argument("stree_threshold must be >= 0 (0: c sqrt(|S|))");
-  if (sc.max_depth < 0) throw std::invalid_argument("max_depth must be >= 0");
-  if (cfg.knn_k < 0) throw std::invalid_argument("knn_k must be >= 0 (0: c sqrt(|S|))");
+  validate(cfg);
   cfg_ = cfg;
   generation_ = ++g_generation;
   tree_ = STree();

@@ -29,6 +29,8 @@ struct GuideConfig {
   GuideStructure structure = GuideStructure::STree;
   int knn_k = 0;           // knn: neighbours per query; 0: ceil(c sqrt(|S|)), the STree's threshold
 };
+// Range checks of a configuration (throws std::invalid_argument naming the parameter).
+void validate(const GuideConfig& cfg);
 
 class GuidingState {
  public:

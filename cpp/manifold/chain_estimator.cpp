@@ -417,30 +417,26 @@ uint64_t ChainEstimator::trace_photons(uint64_t count, uint64_t seed,
   const int nmax = std::min(p_.max_chain, 16);
   for (uint64_t i = 0; i < count; ++i) {
     PCG32 rng = make_stream(seed, 0x70686f746f6eULL /* "photon" */, i, 0);
-    // Emission: light by power, position by area, direction cosine-weighted
-    // (area), uniform (point), uniform in the cone (spot). flux = Le cos / pdf.
-    float usel = rng.next_float();
-    const size_t k = light_dist_.sample(usel);
-    const Emitter& e = scene_.emitters[size_t(chain_lights_[k])];
-    const float psel = light_dist_.pmf(k);
-    Vec3 xL, d;
+    // Emission: light and position as the estimator draws x_L (sample_light:
+    // light by power, position by area), then a direction cosine-weighted
+    // (area), uniform (point) or uniform in the cone (spot). flux = Le cos / pdf.
+    LightPoint lp;
+    if (!sample_light(rng, lp)) continue;
+    const Emitter& e = scene_.emitters[size_t(lp.emitter)];
+    const Vec3 xL = to_f(lp.p);
+    Vec3 d;
     Color flux;
-    if (e.type == Emitter::Type::Area) {
-      const Shape& s = scene_.shapes[size_t(e.shape)];
-      Vec3 n;
-      s.sample_position(Vec2(rng.next_float(), rng.next_float()), xL, n);
+    if (!lp.point) {
       const Vec3 dl = warp::square_to_cosine_hemisphere(Vec2(rng.next_float(), rng.next_float()));
-      d = Frame(n).to_world(dl);
-      flux = e.value * (kPi * s.area / psel);
+      d = Frame(to_f(lp.n)).to_world(dl);
+      flux = lp.value * float(kPi / lp.pdf);
     } else if (e.type == Emitter::Type::Point) {
-      xL = e.position;
       d = warp::square_to_uniform_sphere(Vec2(rng.next_float(), rng.next_float()));
-      flux = e.value * (4.f * kPi / psel);
+      flux = lp.value * float(4.0 * kPi / lp.pdf);
     } else {  // spot: uniform in the cone of cos_cutoff, weighted by the falloff
-      xL = e.position;
       const Vec3 dl = warp::square_to_uniform_cone(Vec2(rng.next_float(), rng.next_float()), e.cos_cutoff);
       d = e.frame.to_world(dl);
-      flux = e.value * (e.spot_falloff(dl) / (warp::uniform_cone_pdf(dl, e.cos_cutoff) * psel));
+      flux = lp.value * float(e.spot_falloff(dl) / (warp::uniform_cone_pdf(dl, e.cos_cutoff) * lp.pdf));
     }
     if (is_black(flux)) continue;
     // Walk through chain vertices, sampling each one's BSDF (R/T by Fresnel at

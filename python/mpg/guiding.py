@@ -16,10 +16,6 @@ from typing import Any
 
 from mpg.errors import RenderError
 
-STREE_FILTERS = ("nearest", "stochastic", "none")
-GUIDE_STRUCTURES = ("stree", "knn")
-
-
 def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
                seed: int, threads: int | None, progress: bool | None):
     from mpg import _core
@@ -44,20 +40,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         raise RenderError(f"init must be 'surface' or 'photon', got '{init}'")
     if n_photons < 1:
         raise RenderError(f"photons must be >= 1, got {n_photons}")
-    if not c > 0.0:
-        raise RenderError(f"stree_c must be positive, got {c}")
-    if not 0.0 <= eps < 0.5:
-        raise RenderError(f"stree_epsilon must be in [0, 0.5), got {eps}")
-    if structure_kw["filter"] not in STREE_FILTERS:
-        raise RenderError(f"unknown stree_filter '{structure_kw['filter']}' "
-                          f"(expected {', '.join(STREE_FILTERS)})")
-    if structure_kw["structure"] not in GUIDE_STRUCTURES:
-        raise RenderError(f"unknown guide_structure '{structure_kw['structure']}' "
-                          f"(expected {', '.join(GUIDE_STRUCTURES)})")
-    if structure_kw["threshold"] < 0:
-        raise RenderError(f"stree_threshold must be >= 0 (0: c sqrt(|S|)), got {structure_kw['threshold']}")
-    if structure_kw["knn_k"] < 0:
-        raise RenderError(f"knn_k must be >= 0 (0: c sqrt(|S|)), got {structure_kw['knn_k']}")
+    try:   # the core's own range checks, before any training work
+        _core.check_guide_config(c=c, epsilon=eps, **structure_kw)
+    except ValueError as e:
+        raise RenderError(str(e)) from None
     core = scene.core
     bmin, bmax = core.bbox
     show = (sys.stderr.isatty() if progress is None else progress)
@@ -70,6 +56,12 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     leaves = 0
     # Effects follow the scene: no caster or no chain emitter -> no training at all.
     probe = _core.make_integrator(core, "mpg", dict(params, record=True))
+
+    def build(buf):
+        state = _core.GuidingState()
+        state.build_from([buf], bmin, bmax, c=c, epsilon=eps, threads=threads or 2, **structure_kw)
+        return state
+
     photon_samples = 0
     seconds_photons = 0.0
     if probe.chains_active and frac > 0.0:
@@ -81,12 +73,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             buf = probe.trace_photons(n_photons, seed)
             photon_samples = len(buf)
             if photon_samples > 0:
-                state = _core.GuidingState()
-                state.build_from([buf], bmin, bmax, c=c, epsilon=eps, threads=threads or 2,
-                                     **structure_kw)
-                build_seconds += state.build_seconds
-                leaves = state.num_leaves
-                guide = state
+                guide = build(buf)
+                build_seconds += guide.build_seconds
+                leaves = guide.num_leaves
             seconds_photons = _time.monotonic() - t0
             if show:
                 sys.stderr.write(f"mpg: {n_photons} photons -> {photon_samples} sub-path samples, "
@@ -111,12 +100,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             buf = r["subpaths"]
             samples_last = len(buf)
             if samples_last > 0:
-                state = _core.GuidingState()
-                state.build_from([buf], bmin, bmax, c=c, epsilon=eps, threads=threads or 2,
-                                     **structure_kw)
-                build_seconds += state.build_seconds
-                leaves = state.num_leaves
-                guide = state
+                guide = build(buf)
+                build_seconds += guide.build_seconds
+                leaves = guide.num_leaves
             if show:
                 el = _time.monotonic() - t0
                 left = (f", {max(0.0, budget_t - el):.1f} s of training left" if budget_t is not None
