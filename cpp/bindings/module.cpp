@@ -298,7 +298,9 @@ py::list chain_points(const ManifoldChain& c) {
 py::dict manifold_walk(const Scene& s, py::object xD, py::object nD, py::object xL, py::object nL,
                        py::object direction, const std::string& tau, const py::dict& cfg) {
   if (!s.committed()) throw std::runtime_error("scene not committed");
-  ManifoldWalk walk(s, walk_config(cfg));
+  WalkConfig wc = walk_config(cfg);
+  wc.record_residuals = true;
+  ManifoldWalk walk(s, wc);
   ManifoldChain chain;
   WalkFailure why = WalkFailure::None;
   py::dict r;

@@ -50,6 +50,7 @@ struct WalkConfig {
   double min_det = 1e-14;      // |det| of a 2x2 pivot below this is singular
   float glossy_threshold = 0.1f;  // rough interfaces with alpha below this are chain vertices
   ConstraintForm form = ConstraintForm::Direction;
+  bool record_residuals = false;  // fill WalkResult::residuals (tests)
 };
 
 // One specular vertex with its chart.
@@ -117,7 +118,7 @@ class ManifoldWalk {
 
   // Jacobian blocks by forward differentiation: A_i = dC_i/dx_{i-1}, B_i = dC_i/dx_i,
   // D_i = dC_i/dx_{i+1} (2x2 each, row-major), plus dC_1/dx_D and dC_n/dx_L with
-  // respect to orthonormal tangent charts at the endpoints.
+  // respect to orthonormal tangent charts at the endpoints (each skipped when null).
   bool jacobian(const ManifoldChain& chain, std::vector<double>& A, std::vector<double>& B,
                 std::vector<double>& D, double dCn_dL[4], double dC1_dD[4]) const;
 
