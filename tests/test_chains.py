@@ -82,6 +82,7 @@ def _zcompare(a: mpg.Image, b: mpg.Image, regions):
 
 @pytest.mark.parametrize("integ,scene,spp_chain", [
     ({"type": "sms_star"}, "sphere_glass.xml", 384),
+    ({"type": "sms_star", "mis": False}, "sphere_glass.xml", 384),
     ({"type": "sms", "tau": "TT"}, "slab_glass.xml", 384),
     ({"type": "sms_star", "max_chain": 4}, "slab_glass.xml", 256),
 ])
@@ -93,6 +94,8 @@ def test_area_light_chains_agree_with_path_tracing(integ, scene, spp_chain, scen
     ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
     img = mpg.render(sc, integrator=dict(integ), spp=spp_chain, seed=12, progress=False)
     assert img.stats["chain_contributions"] > 0 and img.stats["owned_dropped"] >= 0
+    # with MIS (the default) the path tracer keeps a share of the chain paths it finds
+    assert (img.stats["owned_shared"] > 0) == integ.get("mis", True)
     assert img.stats["rejected_samples"] == 0
     regions = [np.s_[:, :]] + [np.s_[i:i + 8, j:j + 8] for i in (0, 8, 16) for j in (0, 8, 16)]
     assert _zcompare(img, ref, regions) < 5
@@ -115,6 +118,21 @@ def test_bad_chain_parameters():
         mpg.render(sc, integrator={"type": "sms", "tau": "TX"}, spp=1, progress=False)
     with pytest.raises(mpg.RenderError):
         mpg.render(sc, integrator={"type": "sms_star", "max_chain": 0}, spp=1, progress=False)
+
+
+@pytest.mark.parametrize("p", [0.9, 0.3, 0.05, 0.004])
+@pytest.mark.parametrize("beta", [0.2, 0.9])
+def test_mis_rounds_estimate_the_balance_heuristic(p, beta):
+    """Rounds that run the trial with probability beta = a / (a + b) and succeed
+    at once otherwise: E[K'] = 1 / (beta p + 1 - beta), so K' / (a + b)
+    estimates 1 / (a p + b) (design-notes, "Chain paths shared with the path
+    tracer"). Mean of n counts within 5 standard errors (p < 6e-7)."""
+    n = 20000
+    k, capped = _core.bernoulli_counts(p, n, 10**9, seed=int(7 / p), beta=beta)
+    assert capped == 0
+    s = beta * p + 1 - beta
+    se = np.sqrt((1 - s) / s**2 / n)
+    assert abs(k.mean() - 1 / s) < 5 * se
 
 
 @pytest.mark.parametrize("p", [0.9, 0.3, 0.05, 0.004])
@@ -433,3 +451,42 @@ def test_spot_light_through_mirror_closed_form():
     # the falloff edge runs through the image: a spot without falloff would differ
     assert np.ptp(falloff(np.array([[1.0, -1.0, 0.0], [-0.2, -1.0, 0.0]]) / np.sqrt([[2.0], [1.04]]))) > 0.5
     assert img.stats["chain_contributions"] > 0
+
+
+def test_shared_chain_paths_have_the_same_densities_on_both_sides(scenes_dir):
+    """The chain estimator and the path tracer share smooth chains to area lights
+    by the balance heuristic (docs/design-notes.md): both must compute the same
+    a = p(x_L) P(n) and b = pdf_bsdf * letters * G for one path x_D -> TT -> x_L,
+    traced by the path tracer on one side and found by a walk from another seed
+    on the other. Off (`mis=false`) b = 0: the estimator takes the path whole."""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
+    core = sc.core
+    rng = np.random.default_rng(5)
+    # walks converged to 1e-10 so that both sides see the same path to ~1e-8
+    # (at the default 1e-5 the b of the two sides differ by up to 1 % near a fold)
+    on = _core.make_integrator(core, "sms_star", {"max_depth": 8, "threshold": 1e-10})
+    off = _core.make_integrator(core, "sms_star", {"max_depth": 8, "mis": False, "threshold": 1e-10})
+    found, shared = 0, 0
+    for _ in range(12000):
+        x = np.array([rng.uniform(-0.6, 1.0), 0.0, rng.uniform(-0.6, 1.0)])
+        # omega_D toward a point of the sphere's lower half, the seed a little off it
+        q = rng.normal(size=3)
+        q[1] = -abs(q[1])
+        q /= np.linalg.norm(q)
+        target = np.array([0.0, 1.0, 0.0]) + q
+        w = target - x
+        w /= np.linalg.norm(w)
+        seed = w + rng.normal(scale=0.02, size=3)
+        cam_o, cam_d = x + [0.0, 0.01, 0.0], [0.0, -1.0, 0.0]
+        r = _core.mis_pair(on, cam_o, cam_d, w, seed, "TT")
+        if r is None:
+            continue
+        a_c, b_c, a_pt, b_pt = r
+        found += 1
+        assert a_c > 0 and b_c > 0
+        assert abs(a_pt - a_c) <= 1e-9 * a_c, (a_c, a_pt)
+        assert abs(b_pt - b_c) <= 1e-4 * b_c, (b_c, b_pt)
+        shared += 0.01 < b_c / (a_c + b_c) < 0.99
+        a0, b0, a0_pt, b0_pt = _core.mis_pair(off, cam_o, cam_d, w, seed, "TT")
+        assert a0 == a_c and b0 == 0.0 and b0_pt == 0.0
+    assert found >= 60 and shared >= 15, (found, shared)

@@ -206,6 +206,7 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
     cp.continuation = get<float>(p, "continuation", cp.continuation);
     cp.uniqueness_threshold = get<double>(p, "uniqueness_threshold", cp.uniqueness_threshold);
     cp.max_trials = get<int>(p, "max_trials", cp.max_trials);
+    cp.mis = get<bool>(p, "mis", cp.mis);
     cp.walk = walk_config(p);
     if (cp.max_chain < 1) throw std::invalid_argument("max_chain must be >= 1");
     if (!(cp.continuation >= 0.f && cp.continuation < 1.f)) throw std::invalid_argument("continuation must be in [0, 1)");
@@ -566,6 +567,16 @@ PYBIND11_MODULE(_core, m) {
         }
         return buf;
       }, py::arg("count"), py::arg("seed") = 0);
+  m.def("mis_pair", [](const Integrator& i, py::object o, py::object d, py::object omega_D, py::object seed_dir,
+                       const std::string& tau) -> py::object {
+    // The MIS densities (a, b) of one chain path on the estimator's and on the
+    // path tracer's side (tests; ChainEstimator::mis_pair).
+    auto* p = dynamic_cast<const PathIntegrator*>(&i);
+    if (!p || !p->chains()) throw std::invalid_argument("the integrator has no chain estimator");
+    double ab[4] = {0.0, 0.0, 0.0, 0.0};
+    if (!p->chains()->mis_pair(vec3(o), vec3(d), vec3(omega_D), vec3(seed_dir), tau, ab)) return py::none();
+    return py::make_tuple(ab[0], ab[1], ab[2], ab[3]);
+  });
   m.def("make_integrator", &make_integrator, py::arg("scene"), py::arg("type"), py::arg("params"));
 
   py::class_<RenderJob, std::shared_ptr<RenderJob>>(m, "RenderJob")
@@ -794,18 +805,21 @@ PYBIND11_MODULE(_core, m) {
   });
   m.def("fresnel_conductor", [](float cos_i, float eta, float k) { return fresnel_conductor_1(cos_i, eta, k); });
   m.def("fresnel_diffuse_reflectance", &fresnel_diffuse_reflectance);
-  m.def("bernoulli_counts", [](double p, int n, int max_trials, uint64_t seed) {
-    // n estimates of 1/p from a synthetic trial succeeding with probability p
+  m.def("bernoulli_counts", [](double p, int n, int max_trials, uint64_t seed, double beta) {
+    // n counts K' of rounds that, with probability beta, run a synthetic trial
+    // succeeding with probability p and otherwise succeed at once (beta = 1:
+    // SMS's estimate of 1/p; ChainEstimator::mis_rounds in general).
     PCG32 rng = make_stream(seed, 0, 0, 0);
     py::array_t<double> out(std::vector<ssize_t>{n});
     int capped_total = 0;
     for (int i = 0; i < n; ++i) {
       bool capped = false;
-      out.mutable_data()[i] = bernoulli_count([&] { return rng.next_double() < p; }, max_trials, capped);
+      out.mutable_data()[i] = bernoulli_count(
+          [&] { return (beta < 1.0 && !(rng.next_double() < beta)) || rng.next_double() < p; }, max_trials, capped);
       capped_total += capped;
     }
     return py::make_tuple(out, capped_total);
-  }, py::arg("p"), py::arg("n"), py::arg("max_trials"), py::arg("seed") = 0);
+  }, py::arg("p"), py::arg("n"), py::arg("max_trials"), py::arg("seed") = 0, py::arg("beta") = 1.0);
   m.def("manifold_walk", &manifold_walk, py::arg("scene"), py::arg("xD"), py::arg("nD"), py::arg("xL"),
         py::arg("nL"), py::arg("direction"), py::arg("tau"), py::arg("config") = py::dict());
 }

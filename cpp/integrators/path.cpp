@@ -14,8 +14,11 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
   const uint32_t max_depth = uint32_t(p_.max_depth);  // -1 -> unbounded, as Mitsuba 3
   // Specular chain since the last separator (for ownership by the chain estimator).
   uint32_t sep_depth = 0;
-  Vec3 sep_p(0.f);
+  SurfaceInteraction sep_si;
+  BSDFContext sep_ctx;
   std::string tau;
+  thread_local std::vector<SurfaceInteraction> chain_si;  // the chain's vertices (for the MIS weight)
+  chain_si.clear();
   bool chain_ok = false;
 
   for (uint32_t depth = 0;; ) {
@@ -38,8 +41,19 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     if (shape.emitter >= 0 && show) {
       const Color Le = scene.emitted(si);
       if (chains_ && chain_ok && !tau.empty() && chains_->owns(sep_depth, max_depth, tau) &&
-          chains_->active_for(sep_p, si.p)) {
-        if (!is_black(Le)) st.owned_dropped++;
+          chains_->active_for(sep_si.p, si.p)) {
+        // A path the chain estimator also produces: this side's share of it
+        // (0 when the estimator takes it whole; design.md "No double counting").
+        if (!is_black(Le)) {
+          const float w = chains_->pt_weight(sep_si, sep_ctx, sep_depth, max_depth, chain_si.data(), tau, si,
+                                             rng, st);
+          if (w > 0.f) {
+            L += beta * Le * w;
+            st.owned_shared++;
+          } else {
+            st.owned_dropped++;
+          }
+        }
       } else if (!is_black(Le)) {
         const float w = prev_delta ? 1.f : power_heuristic(prev_pdf, scene.pdf_emitter_hit(prev_p, si));
         L += beta * Le * w;
@@ -90,14 +104,18 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     if (chains_) {
       if (separator) {
         sep_depth = depth;
-        sep_p = si.p;
+        sep_si = si;
+        sep_ctx = ctx;
         tau.clear();
+        chain_si.clear();
         chain_ok = true;
       } else if (chain_ok) {
-        if (chains_->is_chain_shape(si.shape) && !bs.null)
+        if (chains_->is_chain_shape(si.shape) && !bs.null) {
           tau.push_back(bs.transmission ? 'T' : 'R');
-        else
+          chain_si.push_back(si);
+        } else {
           chain_ok = false;
+        }
       }
     }
     prev_p = si.p;

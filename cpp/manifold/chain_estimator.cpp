@@ -58,6 +58,8 @@ ChainEstimator::ChainEstimator(const Scene& scene, ChainParams p)
     }
   }
   light_dist_.build(w);
+  light_index_.assign(scene.emitters.size(), -1);
+  for (size_t k = 0; k < chain_lights_.size(); ++k) light_index_[size_t(chain_lights_[k])] = int(k);
   // Effects follow the scene: no specular caster or no chain emitter, no work.
   active_ = !seed_dist_.empty() && !light_dist_.empty();
   if (p_.mode == ChainParams::Mode::Sms && p_.tau.empty()) active_ = false;
@@ -222,6 +224,21 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
   return true;
 }
 
+// Vertex i of a chain as a hit seen from the previous vertex (for resolving its BSDF).
+static SurfaceInteraction vertex_interaction(const ManifoldChain& c, size_t i) {
+  const ManifoldVertex& v = c.v[i];
+  const DVec3 xp = i == 0 ? c.xD : c.v[i - 1].p;
+  SurfaceInteraction si;
+  si.valid = true;
+  si.p = to_f(v.p);
+  si.ng = to_f(v.ng);
+  si.sh = Frame(to_f(v.n));
+  si.uv = v.uv;
+  si.wi = to_f(glm::normalize(xp - v.p));
+  si.shape = v.shape;
+  return si;
+}
+
 Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau) const {
   // Product of the specular lobes' weights seen from x_D toward x_L, with the
   // path tracer's conventions (Fresnel, textures, 1/eta^2 radiance scaling).
@@ -229,15 +246,7 @@ Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau) cons
   const size_t n = c.v.size();
   for (size_t i = 0; i < n; ++i) {
     const ManifoldVertex& v = c.v[i];
-    const DVec3 xp = i == 0 ? c.xD : c.v[i - 1].p;
-    SurfaceInteraction si;
-    si.valid = true;
-    si.p = to_f(v.p);
-    si.ng = to_f(v.ng);
-    si.sh = Frame(to_f(v.n));
-    si.uv = v.uv;
-    si.wi = to_f(glm::normalize(xp - v.p));
-    si.shape = v.shape;
+    const SurfaceInteraction si = vertex_interaction(c, i);
     const BSDFContext ctx = scene_.bsdfs.resolve(scene_.shapes[size_t(v.shape)].bsdf, si);
     if (!ctx.leaf) return Color(0.f);
     const float ci = glm::dot(si.wi, ctx.frame.n);
@@ -286,6 +295,181 @@ Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau) cons
   return k;
 }
 
+const ChainDistribution* ChainEstimator::guide_at(const Vec3& xD, const Vec3& xL, Stats* st) const {
+  if (!(p_.guide && p_.guide->valid())) return nullptr;
+  const auto tg = Clock::now();
+  const ChainDistribution* g = p_.guide->query(xD, xL);
+  if (st) st->guide_ns += ns_since(tg);
+  return g;
+}
+
+double ChainEstimator::pn_at(const ChainDistribution* guide, int n, int nmax) const {
+  double mass = 0.0;
+  if (guide)
+    for (int k = 1; k <= nmax; ++k) mass += guide->pmf_n(k);
+  return pmf_n_mix(n, nmax, guide, mass);
+}
+
+double ChainEstimator::pt_letters_pdf(const ManifoldChain& c, const std::string& tau) const {
+  double p = 1.0;
+  const size_t n = c.v.size();
+  for (size_t i = 0; i < n; ++i) {
+    const ManifoldVertex& v = c.v[i];
+    if (v.mf || v.nmap) return -1.0;
+    const SurfaceInteraction si = vertex_interaction(c, i);
+    const BSDFContext ctx = scene_.bsdfs.resolve(scene_.shapes[size_t(v.shape)].bsdf, si);
+    if (!ctx.leaf) return -1.0;
+    if (ctx.leaf->type == BSDFType::Dielectric) {
+      // BSDFSet::sample_local: reflection with probability F at the shading cosine.
+      const float F = fresnel_dielectric(glm::dot(si.wi, ctx.frame.n), ctx.leaf->eta).F;
+      p *= tau[i] == 'R' ? double(F) : double(1.f - F);
+    } else if (ctx.leaf->type != BSDFType::Conductor) {
+      return -1.0;
+    }
+  }
+  return p;
+}
+
+double ChainEstimator::pt_density(const ManifoldChain& c, const std::string& tau,
+                                  const BSDFContext& ctx, const Vec3& wi, double G) const {
+  if (!p_.mis) return 0.0;
+  const double letters = pt_letters_pdf(c, tau);
+  if (!(letters > 0.0)) return 0.0;
+  const Vec3 wD = to_f(glm::normalize(c.v[0].p - c.xD));
+  // Solid-angle density at x_D times |d omega_D / dA_L| (G, method-notes Sec. 4).
+  const double b = double(scene_.bsdfs.pdf(ctx, wi, wD)) * letters * G;
+  return b >= 0.0 ? b : 0.0;  // NaN: not shared
+}
+
+int ChainEstimator::mis_rounds(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
+                               const std::vector<Vec2>& offsets, const ChainDistribution* seed_guide,
+                               const std::string& tau_star, const DVec3& w_star, double beta,
+                               PCG32& rng, Stats& st, bool& capped) const {
+  ManifoldChain other;
+  std::string tau2;
+  return bernoulli_count(
+      [&] {
+        if (beta < 1.0 && !(double(rng.next_float()) < beta)) return true;  // the b share of the round
+        st.bernoulli_trials++;
+        return trial(xD, nD, lp, n, offsets, seed_guide, rng, other, tau2, st) && tau2 == tau_star &&
+               glm::length(glm::normalize(other.v[0].p - xD) - w_star) < p_.uniqueness_threshold;
+      },
+      p_.max_trials, capped);
+}
+
+bool ChainEstimator::pt_densities(const SurfaceInteraction& sep, const BSDFContext& sep_ctx,
+                                  uint32_t sep_depth, uint32_t max_depth, const SurfaceInteraction* verts,
+                                  const std::string& tau, const SurfaceInteraction& light,
+                                  ManifoldChain& c, LightPoint& lp, const ChainDistribution*& guide,
+                                  double& a, double& b) const {
+  if (!p_.mis || !light.valid) return false;
+  const int emitter = scene_.shapes[size_t(light.shape)].emitter;
+  if (emitter < 0) return false;
+  const int k = light_index_[size_t(emitter)];
+  const Emitter& e = scene_.emitters[size_t(emitter)];
+  if (k < 0 || e.type != Emitter::Type::Area) return false;
+  const int n = int(tau.size());
+  c.xD = to_d(sep.p);
+  c.nD = to_d(sep.ng);
+  c.xL = to_d(light.p);
+  c.nL = to_d(light.ng);
+  c.v.resize(size_t(n));
+  for (int i = 0; i < n; ++i)
+    if (!walk_.make_vertex(verts[i], tau[size_t(i)] == 'R', c.v[size_t(i)], nullptr)) return false;
+  // The traced path leaves each vertex from an offset origin, so it misses the
+  // exact chain of its endpoints by ~1e-4 in direction, and G near a fold is
+  // sensitive to that: a walk (one or two Newton steps) puts it on the chain the
+  // estimator would find, so both sides evaluate a and b at the same path.
+  if (!walk_.solve(c).converged) return false;
+  double G = 0.0;
+  if (!walk_.geometry_area(c, G) || !(G >= 0.0)) return false;
+  b = pt_density(c, tau, sep_ctx, sep.wi, G);
+  if (!(b > 0.0)) return false;
+  lp.p = c.xL;
+  lp.n = c.nL;
+  lp.value = e.value;
+  lp.pdf = light_dist_.pmf(size_t(k)) / double(scene_.shapes[size_t(e.shape)].area);
+  lp.point = false;
+  lp.emitter = emitter;
+  guide = guide_at(sep.p, light.p, nullptr);
+  a = lp.pdf * pn_at(guide, n, max_len(sep_depth, max_depth));
+  return a > 0.0;
+}
+
+float ChainEstimator::pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx,
+                                uint32_t sep_depth, uint32_t max_depth, const SurfaceInteraction* verts,
+                                const std::string& tau, const SurfaceInteraction& light, PCG32& rng,
+                                Stats& st) const {
+  ManifoldChain c;
+  LightPoint lp;
+  const ChainDistribution* guide = nullptr;
+  double a = 0.0, b = 0.0;
+  if (!pt_densities(sep, sep_ctx, sep_depth, max_depth, verts, tau, light, c, lp, guide, a, b)) return 0.f;
+  if (!std::isfinite(b)) return 1.f;  // the estimator's share a P / (a P + b) vanishes
+  // b / (a P + b) = b / (a + b) * E[K'] with the estimator's own trials
+  // (same n, leaf and seed mixture) aiming at this chain.
+  const int n = int(tau.size());
+  const std::vector<Vec2> offsets(size_t(n), Vec2(0.5f));  // smooth chains: unused
+  const ChainDistribution* seed_guide = (guide && (p_.guide_tau || p_.guide_dir)) ? guide : nullptr;
+  const DVec3 w_star = glm::normalize(c.v[0].p - c.xD);
+  bool capped = false;
+  const auto tb = Clock::now();
+  const int K = mis_rounds(c.xD, c.nD, lp, n, offsets, seed_guide, tau, w_star, a / (a + b), rng, st, capped);
+  st.bernoulli_ns += ns_since(tb);
+  if (capped) st.bernoulli_capped++;
+  return float(b / (a + b) * double(K));
+}
+
+bool ChainEstimator::mis_pair(const Vec3& o, const Vec3& d, const Vec3& omega_D, const Vec3& seed_dir,
+                              const std::string& tau, double ab[4]) const {
+  const SurfaceInteraction sep = scene_.intersect(o, glm::normalize(d), 0.f, kInf);
+  if (!sep.valid || tau.empty()) return false;
+  const BSDFContext ctx = scene_.bsdfs.resolve(scene_.shapes[size_t(sep.shape)].bsdf, sep);
+  if (!ctx.leaf) return false;
+  // Path tracer's side: ideal scattering along the letters, then an emitter.
+  std::vector<SurfaceInteraction> verts;
+  Vec3 org = sep.p, ng = sep.ng, dir = glm::normalize(omega_D);
+  for (char letter : tau) {
+    const SurfaceInteraction si = scene_.intersect(offset_ray_origin(org, ng, dir), dir, 0.f, kInf);
+    ManifoldVertex v;
+    if (!si.valid || !walk_.make_vertex(si, letter == 'R', v, nullptr)) return false;
+    DVec3 wo;
+    if (!ManifoldWalk::scatter(-to_d(dir), v.n, v.eta, letter == 'R', wo)) return false;
+    verts.push_back(si);
+    org = si.p;
+    ng = si.ng;
+    dir = to_f(wo);
+  }
+  const SurfaceInteraction light = scene_.intersect(offset_ray_origin(org, ng, dir), dir, 0.f, kInf);
+  if (!light.valid || scene_.shapes[size_t(light.shape)].emitter < 0) return false;
+  ManifoldChain cp;
+  LightPoint lp;
+  const ChainDistribution* guide = nullptr;
+  ab[2] = ab[3] = 0.0;
+  if (!pt_densities(sep, ctx, 0, uint32_t(-1), verts.data(), tau, light, cp, lp, guide, ab[2], ab[3])) {
+    if (p_.mis) return false;
+  }
+  // Estimator's side: a walk from another seed to the same x_L.
+  ManifoldChain c;
+  c.xL = to_d(light.p);
+  c.nL = to_d(light.ng);
+  WalkFailure why = WalkFailure::None;
+  if (!walk_.trace_seed(to_d(sep.p), to_d(sep.ng), to_d(seed_dir), tau, c, why)) return false;
+  if (!walk_.solve(c).converged) return false;
+  // the same path (a configuration can have several TT solutions)
+  if (glm::length(glm::normalize(c.v[0].p - to_d(sep.p)) - to_d(glm::normalize(omega_D))) > 1e-2) return false;
+  double G = 0.0;
+  if (!walk_.geometry_area(c, G)) return false;
+  const int emitter = scene_.shapes[size_t(light.shape)].emitter;
+  if (light_index_[size_t(emitter)] < 0) return false;
+  const Emitter& e = scene_.emitters[size_t(emitter)];
+  const double pdf_light = light_dist_.pmf(size_t(light_index_[size_t(emitter)])) /
+                           double(scene_.shapes[size_t(e.shape)].area);
+  ab[0] = pdf_light * pn_at(guide_at(sep.p, light.p, nullptr), int(tau.size()), max_len(0, uint32_t(-1)));
+  ab[1] = pt_density(c, tau, ctx, sep.wi, G);
+  return true;
+}
+
 Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
                                uint32_t max_depth, PCG32& rng, Stats& st) const {
   if (!active_) return Color(0.f);
@@ -301,15 +485,10 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
   do {
     if (!sample_light(rng, lp)) break;
     // The leaf of (x_D, x_L): learned distribution, and selective activation.
-    const ChainDistribution* guide = nullptr;
-    if (p_.guide && p_.guide->valid()) {
-      const auto tg = Clock::now();
-      guide = p_.guide->query(to_f(xD), to_f(lp.p));
-      st.guide_ns += ns_since(tg);
-      if (!guide && p_.selective) {
-        st.chain_inactive++;
-        break;
-      }
+    const ChainDistribution* guide = guide_at(to_f(xD), to_f(lp.p), &st);
+    if (!guide && p_.guide && p_.guide->valid() && p_.selective) {
+      st.chain_inactive++;
+      break;
     }
     double mass = 0.0;
     if (guide)
@@ -327,7 +506,7 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     } else {
       n = sample_n(rng.next_float(), nmax);
     }
-    const double pn = pmf_n_mix(n, nmax, guide, mass);
+    const double pn = pn_at(guide, n, nmax);
     // Offset normals of glossy vertices: drawn once, shared by all trials (the
     // admissible set is finite given them; method-notes Sec. 7).
     thread_local std::vector<Vec2> offsets;  // reused: no allocation per estimate
@@ -361,30 +540,31 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     } else {
       if (!walk_.geometry_area(chain, G)) break;
     }
-    // <1/P>: repeat independent trials with the same n until the same solution returns.
+    // Balance heuristic with the path tracer's own continuation (design-notes,
+    // "Chain paths shared with the path tracer"): with a = p(x_L) P(n) and b its
+    // density, the estimate F / (a P + b) = F K' / (a + b), E[K'] = (a + b) / (a P + b)
+    // by the MIS-aware Bernoulli rounds. b = 0 (point/spot lights, glossy or
+    // normal-mapped chains, mis off): SMS's F K / a, <1/P> = K (supplemental Sec. 3.2).
+    const double a = lp.pdf * pn;
+    const double b = lp.point ? 0.0 : pt_density(chain, tau, ctx, si.wi, G);
+    if (!std::isfinite(b)) break;  // a P / (a P + b) = 0
     const DVec3 w_star = glm::normalize(chain.v[0].p - xD);
     const std::string tau_star = tau;
-    ManifoldChain other;
-    std::string tau2;
     bool capped = false;
     const auto tb = Clock::now();
-    const int K = bernoulli_count(
-        [&] {
-          st.bernoulli_trials++;
-          return trial(xD, nD, lp, n, offsets, seed_guide, rng, other, tau2, st) && tau2 == tau_star &&
-                 glm::length(glm::normalize(other.v[0].p - xD) - w_star) < p_.uniqueness_threshold;
-        },
-        p_.max_trials, capped);
+    const int K = mis_rounds(xD, nD, lp, n, offsets, seed_guide, tau_star, w_star, a / (a + b), rng, st, capped);
     st.bernoulli_ns += ns_since(tb);
     if (capped) st.bernoulli_capped++;
     if (p_.record && !capped) {
-      // Sub-path sample for the next training iteration: w = T <1/P> (MPG Eq. 9).
+      // Sub-path sample for the next training iteration: w = T <1/P> (MPG Eq. 9),
+      // times the estimator's share a P / (a P + b) of the path when it is shared
+      // (K a / (a + b) estimates that share over P; = K when b = 0).
       SubpathSample ss;
-      for (int a = 0; a < 3; ++a) { ss.xD[a] = float(xD[a]); ss.xL[a] = float(lp.p[a]); }
+      for (int c = 0; c < 3; ++c) { ss.xD[c] = float(xD[c]); ss.xL[c] = float(lp.p[c]); }
       const Vec2 e = oct_encode(to_f(w_star));
       ss.dir[0] = e.x;
       ss.dir[1] = e.y;
-      ss.weight = luminance(kap * Le) * float(G) * float(K);
+      ss.weight = luminance(kap * Le) * float(G * double(K) * a / (a + b));
       // Product sampling with the separator's BSDF (MPG Eq. 14): the weight also
       // carries rho(omega_i, omega_D*) (here with |cos theta_D|, the integrand's factor).
       if (p_.product) ss.weight *= luminance(f);
@@ -393,7 +573,7 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
       ss.flags = 0;
       if (std::isfinite(ss.weight) && ss.weight > 0.f) st.subpaths.push_back(ss);
     }
-    double scale = G * double(K) / (lp.pdf * pn);
+    double scale = G * double(K) / (a + b);
     if (lp.point) {
       // Irradiance I kappa G; f already carries |cos theta_D|, which G contains too.
       const float cosD = std::abs(glm::dot(wD, si.sh.n));

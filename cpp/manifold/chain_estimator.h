@@ -64,6 +64,10 @@ struct ChainParams {
   bool record = false;             // store SubpathSamples in Stats::subpaths
   bool product = false;            // product sampling with the separator's BSDF (MPG Eq. 14)
   bool guide_n = true, guide_tau = true, guide_dir = true;  // ablation switches
+  // Share the chain paths the path tracer can also reach (smooth chains to area
+  // lights) by the power heuristic instead of giving them whole to the estimator
+  // (docs/design-notes.md, "Chain paths shared with the path tracer").
+  bool mis = true;
 };
 
 class ChainEstimator {
@@ -96,6 +100,26 @@ class ChainEstimator {
   // Deterministic for a given seed. Returns the number of photons traced.
   uint64_t trace_photons(uint64_t count, uint64_t seed, std::vector<SubpathSample>& out) const;
 
+  // The path tracer's weight for a path it traced from the separator `sep`
+  // (resolved BSDF `sep_ctx`, loop depth `sep_depth`) through the chain vertices
+  // `verts` (letters `tau`) to the emitter hit `light`, when owns() and
+  // active_for() hold: an unbiased estimate of b / (a P + b), the path
+  // tracer's balance-heuristic weight (docs/design-notes.md, "Chain paths shared
+  // with the path tracer"), or 0 when the estimator takes the path whole (mis
+  // off, glossy or normal-mapped vertices, a degenerate chain).
+  float pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx, uint32_t sep_depth,
+                  uint32_t max_depth, const SurfaceInteraction* verts, const std::string& tau,
+                  const SurfaceInteraction& light, PCG32& rng, Stats& st) const;
+
+  // Test entry point: the densities a (estimator, without P) and b (path
+  // tracer) of one path as each side computes them. The path tracer's path
+  // runs from the camera ray (o, d) to its first hit x_D, then along omega_D
+  // through the letters of `tau` (ideal R/T) to an emitter; the estimator's
+  // chain is a walk from `seed_dir` at x_D to the same x_L. False when either
+  // side fails or the walk finds another solution.
+  bool mis_pair(const Vec3& o, const Vec3& d, const Vec3& omega_D, const Vec3& seed_dir,
+                const std::string& tau, double ab[4]) const;
+
   // Contribution at x_D (already multiplied by f_s * |cos|); `wi` toward the camera.
   Color estimate(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
                  uint32_t max_depth, PCG32& rng, Stats& st) const;
@@ -119,6 +143,30 @@ class ChainEstimator {
              const std::vector<Vec2>& offsets, const ChainDistribution* guide, PCG32& rng,
              ManifoldChain& chain, std::string& tau, Stats& st) const;
   Color kappa(const ManifoldChain& chain, const std::string& tau) const;
+  // The leaf of (x_D, x_L), or null (no guide, or an empty leaf).
+  const ChainDistribution* guide_at(const Vec3& xD, const Vec3& xL, Stats* st) const;
+  // P(n) of the estimator at a leaf (Eq. 13's mixture; the initial law without a leaf).
+  double pn_at(const ChainDistribution* guide, int n, int nmax) const;
+  // Probability that the path tracer picks the letters of `tau` at the chain's
+  // vertices (Fresnel at dielectrics, 1 at conductors); -1 when a vertex is
+  // glossy or normal-mapped (no sharing there).
+  double pt_letters_pdf(const ManifoldChain& c, const std::string& tau) const;
+  // b: the path tracer's density of a converged chain per unit area at x_L,
+  // pdf_bsdf(omega_D) * pt_letters_pdf * G; 0 when the path is not shared.
+  double pt_density(const ManifoldChain& c, const std::string& tau, const BSDFContext& ctx,
+                    const Vec3& wi, double G) const;
+  // The path tracer's side: chain, light point and densities of a traced path.
+  bool pt_densities(const SurfaceInteraction& sep, const BSDFContext& sep_ctx, uint32_t sep_depth,
+                    uint32_t max_depth, const SurfaceInteraction* verts, const std::string& tau,
+                    const SurfaceInteraction& light, ManifoldChain& c, LightPoint& lp,
+                    const ChainDistribution*& guide, double& a, double& b) const;
+  // K' of the MIS-aware Bernoulli process: each round, with probability beta a
+  // trial that succeeds iff it finds (tau*, omega*), otherwise an immediate
+  // success; E[K'] = 1 / (beta P + 1 - beta). beta = 1: SMS's K, E = 1/P.
+  int mis_rounds(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
+                 const std::vector<Vec2>& offsets, const ChainDistribution* seed_guide,
+                 const std::string& tau_star, const DVec3& w_star, double beta, PCG32& rng,
+                 Stats& st, bool& capped) const;
 
   const Scene& scene_;
   ChainParams p_;
@@ -129,6 +177,7 @@ class ChainEstimator {
   DiscreteDistribution seed_dist_;   // by area
   std::vector<int> chain_lights_;    // emitters used as x_L
   DiscreteDistribution light_dist_;  // by power
+  std::vector<int> light_index_;     // emitter -> index in chain_lights_, or -1
 };
 
 }  // namespace mpg

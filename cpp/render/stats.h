@@ -28,6 +28,7 @@ struct Stats {
   uint64_t bernoulli_trials = 0;     // extra trials spent estimating 1/P
   uint64_t bernoulli_capped = 0;     // estimates stopped by max_trials (biased, counted)
   uint64_t owned_dropped = 0;        // path-traced chain paths dropped (owned by the estimator)
+  uint64_t owned_shared = 0;         // path-traced chain paths kept with an MIS weight < 1
   uint64_t chain_ns = 0;             // time in chain estimation (summed over threads)
   uint64_t bernoulli_ns = 0;         // of which: the Bernoulli trials estimating 1/P
   uint64_t guide_ns = 0;             // of which: guiding (STree query, sampling n, tau, omega from a leaf)
@@ -47,7 +48,7 @@ struct Stats {
     path_vertices += o.path_vertices;
     chain_estimates += o.chain_estimates; chain_converged += o.chain_converged;
     chain_contributions += o.chain_contributions; bernoulli_trials += o.bernoulli_trials;
-    bernoulli_capped += o.bernoulli_capped; owned_dropped += o.owned_dropped; chain_ns += o.chain_ns;
+    bernoulli_capped += o.bernoulli_capped; owned_dropped += o.owned_dropped; owned_shared += o.owned_shared; chain_ns += o.chain_ns;
     bernoulli_ns += o.bernoulli_ns; guide_ns += o.guide_ns;
     for (size_t i = 0; i < walk_failures.size(); ++i) walk_failures[i] += o.walk_failures[i];
     guided_trials += o.guided_trials;
@@ -67,7 +68,7 @@ struct Stats {
             {"chain_estimates", double(chain_estimates)}, {"chain_converged", double(chain_converged)},
             {"chain_contributions", double(chain_contributions)},
             {"bernoulli_trials", double(bernoulli_trials)}, {"bernoulli_capped", double(bernoulli_capped)},
-            {"owned_dropped", double(owned_dropped)}, {"chain_ns", double(chain_ns)},
+            {"owned_dropped", double(owned_dropped)}, {"owned_shared", double(owned_shared)}, {"chain_ns", double(chain_ns)},
             {"bernoulli_ns", double(bernoulli_ns)}, {"guide_ns", double(guide_ns)},
             {"guided_trials", double(guided_trials)}, {"chain_inactive", double(chain_inactive)},
             {"subpath_samples", double(subpaths.size())},

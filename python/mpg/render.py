@@ -19,11 +19,12 @@ from mpg.scene.desc import IntegratorDesc, SceneDesc
 IMPLEMENTED = {"path", "sms", "sms_star", "mpg"}
 PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
-                "threshold", "max_iterations", "form", "glossy_threshold"}
+                "threshold", "max_iterations", "form", "glossy_threshold", "mis"}
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
                 "guide_dir", "training_fraction", "stree_c", "stree_epsilon", "stree_filter",
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons"}
-BOOL_PARAMS = {"hide_emitters", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product"}
+BOOL_PARAMS = {"hide_emitters", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
+               "mis"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
 # The SMS paper's integrators, with their parameter names, map onto `sms`.
 SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
