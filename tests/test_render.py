@@ -176,6 +176,8 @@ def test_time_budget_stops_and_keeps_passes():
     assert img.spp >= 1
     assert img.stats["seconds"] < 2.5
     assert np.isfinite(img.rgb).all()
+    # the work of a pass the limit cut is reported (and can only be part of the budget)
+    assert 0.0 <= img.stats["seconds_dropped"] <= img.stats["seconds"]
 
 
 def test_variance_estimate_is_calibrated():

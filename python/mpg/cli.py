@@ -127,7 +127,9 @@ def _run(args) -> int:
         if st["interrupted"]:
             state = " (interrupted: partial image)"
         elif st["time_limited"]:
-            state = " (time limit reached)"
+            cut = st.get("seconds_dropped", 0.0)
+            state = (f" (time limit reached; the pass it cut, {cut:.1f} s, dropped)" if cut >= 0.05
+                     else " (time limit reached)")
         print(f"mpg-render: wrote {out}" + (f" and {preview}" if preview else "")
               + f": {img.spp} spp, {st['seconds']:.2f} s, "
               f"{st['samples_per_second'] / 1e6:.2f} M samples/s{state}", file=sys.stderr)

@@ -81,12 +81,19 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                 sys.stderr.write(f"mpg: {n_photons} photons -> {photon_samples} sub-path samples, "
                                  f"{leaves} leaves, {seconds_photons:.2f} s\n")
         k = 1
+        last_iter_t = None
         while True:
             used_t = _time.monotonic() - t0
             if budget_spp is not None and (spp_train + k > budget_spp or spp_train >= budget_spp / 2):
                 break
             if budget_t is not None and used_t >= budget_t / 2:
                 break
+            # nor one that would overrun the budget at the last iteration's speed
+            # (it would be cancelled and its samples lost: an iteration with the
+            # better guide finds more and longer chains, so it costs more than 2x)
+            if budget_t is not None and last_iter_t is not None and used_t + 2.0 * last_iter_t > budget_t:
+                break
+            iter_t0 = _time.monotonic()
             integ = _core.make_integrator(core, "mpg", dict(params, record=True, guide=guide))
             job = _core.RenderJob(core, integ, k, seed, 1_000_000 + iterations, threads or 0)
             while not job.wait(0.05):
@@ -97,6 +104,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                 break
             spp_train += k
             iterations += 1
+            last_iter_t = _time.monotonic() - iter_t0
             buf = r["subpaths"]
             samples_last = len(buf)
             if samples_last > 0:

@@ -256,6 +256,7 @@ def render(
     t0 = _time.monotonic()
     sched = pass_schedule()
     pass_seconds_per_spp = None
+    seconds_dropped = 0.0
     try:
         while spp is None or done < spp:
             k = next(sched)
@@ -267,7 +268,15 @@ def render(
                     time_limited = True
                     break
                 if pass_seconds_per_spp and spp is None:
-                    k = max(1, min(k, int(left / pass_seconds_per_spp)))
+                    # A pass the limit cuts is dropped whole: size the next one to
+                    # half of what is left and at most an eighth of the budget, by
+                    # the slowest pass so far, so that the passes shrink toward the
+                    # limit and a cut one loses little. A full-size pass that
+                    # overran the limit lost up to half of a 30 s chain render; a
+                    # chain render's speed varies from pass to pass by 2x and more
+                    # (a sample can run thousands of Bernoulli trials).
+                    k = max(1, min(k, int(min(0.5 * left, time / 8) / pass_seconds_per_spp)))
+            pass_t0 = _time.monotonic()
             job = _core.RenderJob(core_scene, integ, k, seed, passes, threads or 0)
             cancelled_by_time = False
             try:
@@ -294,6 +303,7 @@ def render(
             r = job.result()
             if r["cancelled"]:
                 time_limited = time_limited or cancelled_by_time
+                seconds_dropped = _time.monotonic() - pass_t0
                 break
             acc += r["sum"]
             acc2 += r["sum_sq"]
@@ -306,7 +316,7 @@ def render(
                     stats[key] = stats.get(key, 0.0) + v
             done += k
             passes += 1
-            pass_seconds_per_spp = r["seconds"] / k
+            pass_seconds_per_spp = max(pass_seconds_per_spp or 0.0, r["seconds"] / k)
             el = _time.monotonic() - t0
             bar.update(done / spp if spp else el / time, done, spp, el)
     finally:
@@ -333,6 +343,7 @@ def render(
         "threads": threads or 0,
         "interrupted": interrupted,
         "time_limited": time_limited,
+        "seconds_dropped": seconds_dropped,  # wall time of a pass the limit cut (its work is dropped)
         "rejected_samples": rejected,
         "samples_per_second": stats.get("samples", 0.0) / elapsed if elapsed > 0 else 0.0,
         "warnings": list(scene.warnings) + warnings,
