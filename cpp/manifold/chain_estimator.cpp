@@ -349,6 +349,7 @@ int ChainEstimator::mis_rounds(const DVec3& xD, const DVec3& nD, const LightPoin
   std::string tau2;
   return bernoulli_count(
       [&] {
+        if (st.cancelled()) return true;  // the pass is dropped: any value will do
         if (beta < 1.0 && !(double(rng.next_float()) < beta)) return true;  // the b share of the round
         st.bernoulli_trials++;
         return trial(xD, nD, lp, n, offsets, seed_guide, rng, other, tau2, st) && tau2 == tau_star &&

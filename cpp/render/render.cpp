@@ -57,6 +57,7 @@ void RenderJob::run() {
     _MM_SET_FLUSH_ZERO_MODE(_MM_FLUSH_ZERO_ON);
     _MM_SET_DENORMALS_ZERO_MODE(_MM_DENORMALS_ZERO_ON);
     Stats& st = stats[size_t(tid)];
+    st.cancel = &cancel_;
     for (;;) {
       if (cancel_.load(std::memory_order_relaxed)) return;
       const int tile = next_tile.fetch_add(1);

@@ -2,6 +2,7 @@
 #pragma once
 
 #include <array>
+#include <atomic>
 #include <cstdint>
 #include <map>
 #include <string>
@@ -12,6 +13,12 @@
 namespace mpg {
 
 struct Stats {
+  // The pass's cancel flag (set by the render worker, null elsewhere): long
+  // loops inside one sample (Bernoulli trials) poll it, so that a cancelled
+  // pass, which is dropped anyway, stops within one trial instead of one sample
+  // (a sample can run up to max_trials walks, seconds with long chains).
+  const std::atomic<bool>* cancel = nullptr;
+  bool cancelled() const { return cancel && cancel->load(std::memory_order_relaxed); }
   uint64_t samples = 0;
   uint64_t camera_rays = 0;
   uint64_t rays = 0;           // intersection queries
