@@ -108,7 +108,10 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
         sep_ctx = ctx;
         tau.clear();
         chain_si.clear();
-        chain_ok = true;
+        // A delta lobe of a separator (smooth plastic's coating, an index-
+        // matched interface) is not in the estimator's f_s: those paths are
+        // the path tracer's alone.
+        chain_ok = !bs.delta;
       } else if (chain_ok) {
         if (chains_->is_chain_shape(si.shape) && !bs.null) {
           tau.push_back(bs.transmission ? 'T' : 'R');

@@ -350,7 +350,7 @@ int ChainEstimator::mis_rounds(const DVec3& xD, const DVec3& nD, const LightPoin
   return bernoulli_count(
       [&] {
         if (st.cancelled()) return true;  // the pass is dropped: any value will do
-        if (beta < 1.0 && !(double(rng.next_float()) < beta)) return true;  // the b share of the round
+        if (beta < 1.0 && !(rng.next_double() < beta)) return true;  // the b share of the round
         st.bernoulli_trials++;
         return trial(xD, nD, lp, n, offsets, seed_guide, rng, other, tau2, st) && tau2 == tau_star &&
                glm::length(glm::normalize(other.v[0].p - xD) - w_star) < p_.uniqueness_threshold;
@@ -358,34 +358,28 @@ int ChainEstimator::mis_rounds(const DVec3& xD, const DVec3& nD, const LightPoin
       p_.max_trials, capped);
 }
 
-bool ChainEstimator::pt_densities(const SurfaceInteraction& sep, const BSDFContext& sep_ctx,
-                                  uint32_t sep_depth, uint32_t max_depth, const SurfaceInteraction* verts,
-                                  const std::string& tau, const SurfaceInteraction& light,
-                                  ManifoldChain& c, LightPoint& lp, const ChainDistribution*& guide,
-                                  double& a, double& b) const {
-  if (!p_.mis || !light.valid) return false;
+int ChainEstimator::pt_densities(const SurfaceInteraction& sep, const BSDFContext& sep_ctx,
+                                 uint32_t sep_depth, uint32_t max_depth, const SurfaceInteraction* verts,
+                                 const std::string& tau, const SurfaceInteraction& light,
+                                 ManifoldChain& c, LightPoint& lp, const ChainDistribution*& guide,
+                                 double& a, double& b) const {
+  if (!p_.mis || !light.valid) return 0;
   const int emitter = scene_.shapes[size_t(light.shape)].emitter;
-  if (emitter < 0) return false;
+  if (emitter < 0) return 0;
   const int k = light_index_[size_t(emitter)];
+  if (k < 0) return 1;  // not a chain emitter: the estimator never samples it
   const Emitter& e = scene_.emitters[size_t(emitter)];
-  if (k < 0 || e.type != Emitter::Type::Area) return false;
+  if (e.type != Emitter::Type::Area) return 0;
   const int n = int(tau.size());
   c.xD = to_d(sep.p);
   c.nD = to_d(sep.ng);
   c.xL = to_d(light.p);
   c.nL = to_d(light.ng);
   c.v.resize(size_t(n));
-  for (int i = 0; i < n; ++i)
-    if (!walk_.make_vertex(verts[i], tau[size_t(i)] == 'R', c.v[size_t(i)], nullptr)) return false;
-  // The traced path leaves each vertex from an offset origin, so it misses the
-  // exact chain of its endpoints by ~1e-4 in direction, and G near a fold is
-  // sensitive to that: a walk (one or two Newton steps) puts it on the chain the
-  // estimator would find, so both sides evaluate a and b at the same path.
-  if (!walk_.solve(c).converged) return false;
-  double G = 0.0;
-  if (!walk_.geometry_area(c, G) || !(G >= 0.0)) return false;
-  b = pt_density(c, tau, sep_ctx, sep.wi, G);
-  if (!(b > 0.0)) return false;
+  for (int i = 0; i < n; ++i) {
+    if (!walk_.make_vertex(verts[i], tau[size_t(i)] == 'R', c.v[size_t(i)], nullptr)) return 0;
+    if (c.v[size_t(i)].mf || c.v[size_t(i)].nmap) return 0;  // not shared: no walk needed
+  }
   lp.p = c.xL;
   lp.n = c.nL;
   lp.value = e.value;
@@ -394,23 +388,36 @@ bool ChainEstimator::pt_densities(const SurfaceInteraction& sep, const BSDFConte
   lp.emitter = emitter;
   guide = guide_at(sep.p, light.p, nullptr);
   a = lp.pdf * pn_at(guide, n, max_len(sep_depth, max_depth));
-  return a > 0.0;
+  if (!(a > 0.0)) return 1;  // P(n) = 0: the estimator never draws this length
+  // The traced path leaves each vertex from an offset origin, so it misses the
+  // exact chain of its endpoints by ~1e-4 in direction, and G near a fold is
+  // sensitive to that: a walk (one or two Newton steps) puts it on the chain the
+  // estimator would find, so both sides evaluate a and b at the same path. If
+  // that walk fails (rare), b is taken at the traced vertices.
+  const ManifoldChain traced = c;
+  if (!walk_.solve(c).converged) c = traced;
+  double G = 0.0;
+  if (!walk_.geometry_area(c, G) || !(G >= 0.0)) return 0;
+  b = pt_density(c, tau, sep_ctx, sep.wi, G);
+  return b > 0.0 ? 2 : 0;
 }
 
 float ChainEstimator::pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx,
                                 uint32_t sep_depth, uint32_t max_depth, const SurfaceInteraction* verts,
                                 const std::string& tau, const SurfaceInteraction& light, PCG32& rng,
                                 Stats& st) const {
-  ManifoldChain c;
+  thread_local ManifoldChain c;
+  thread_local std::vector<Vec2> offsets;
   LightPoint lp;
   const ChainDistribution* guide = nullptr;
   double a = 0.0, b = 0.0;
-  if (!pt_densities(sep, sep_ctx, sep_depth, max_depth, verts, tau, light, c, lp, guide, a, b)) return 0.f;
+  const int shared = pt_densities(sep, sep_ctx, sep_depth, max_depth, verts, tau, light, c, lp, guide, a, b);
+  if (shared != 2) return shared == 1 ? 1.f : 0.f;
   if (!std::isfinite(b)) return 1.f;  // the estimator's share a P / (a P + b) vanishes
   // b / (a P + b) = b / (a + b) * E[K'] with the estimator's own trials
   // (same n, leaf and seed mixture) aiming at this chain.
   const int n = int(tau.size());
-  const std::vector<Vec2> offsets(size_t(n), Vec2(0.5f));  // smooth chains: unused
+  offsets.assign(size_t(n), Vec2(0.5f));  // smooth chains: unused
   const ChainDistribution* seed_guide = (guide && (p_.guide_tau || p_.guide_dir)) ? guide : nullptr;
   const DVec3 w_star = glm::normalize(c.v[0].p - c.xD);
   bool capped = false;
@@ -447,8 +454,9 @@ bool ChainEstimator::mis_pair(const Vec3& o, const Vec3& d, const Vec3& omega_D,
   LightPoint lp;
   const ChainDistribution* guide = nullptr;
   ab[2] = ab[3] = 0.0;
-  if (!pt_densities(sep, ctx, 0, uint32_t(-1), verts.data(), tau, light, cp, lp, guide, ab[2], ab[3])) {
+  if (pt_densities(sep, ctx, 0, uint32_t(-1), verts.data(), tau, light, cp, lp, guide, ab[2], ab[3]) != 2) {
     if (p_.mis) return false;
+    ab[2] = ab[3] = 0.0;
   }
   // Estimator's side: a walk from another seed to the same x_L.
   ManifoldChain c;

@@ -15,7 +15,9 @@
 //
 // Ownership (design.md "No double counting"): a path the path tracer samples
 // as separator -> specular vertices -> chain emitter is owned by this
-// estimator when owns(depth, tau) is true; the path tracer then drops it.
+// estimator when owns(depth, tau) is true; the path tracer then drops it, or,
+// for smooth chains to area lights, keeps its share of a balance heuristic
+// (pt_weight; docs/design-notes.md, "Chain paths shared with the path tracer").
 #pragma once
 
 #include <string>
@@ -65,7 +67,7 @@ struct ChainParams {
   bool product = false;            // product sampling with the separator's BSDF (MPG Eq. 14)
   bool guide_n = true, guide_tau = true, guide_dir = true;  // ablation switches
   // Share the chain paths the path tracer can also reach (smooth chains to area
-  // lights) by the power heuristic instead of giving them whole to the estimator
+  // lights) by the balance heuristic instead of giving them whole to the estimator
   // (docs/design-notes.md, "Chain paths shared with the path tracer").
   bool mis = true;
 };
@@ -156,7 +158,9 @@ class ChainEstimator {
   double pt_density(const ManifoldChain& c, const std::string& tau, const BSDFContext& ctx,
                     const Vec3& wi, double G) const;
   // The path tracer's side: chain, light point and densities of a traced path.
-  bool pt_densities(const SurfaceInteraction& sep, const BSDFContext& sep_ctx, uint32_t sep_depth,
+  // Returns 0: not shared (the estimator takes it whole), 1: the estimator
+  // cannot produce it (the path tracer keeps it whole), 2: shared (a, b set).
+  int pt_densities(const SurfaceInteraction& sep, const BSDFContext& sep_ctx, uint32_t sep_depth,
                     uint32_t max_depth, const SurfaceInteraction* verts, const std::string& tau,
                     const SurfaceInteraction& light, ManifoldChain& c, LightPoint& lp,
                     const ChainDistribution*& guide, double& a, double& b) const;
