@@ -815,7 +815,8 @@ PYBIND11_MODULE(_core, m) {
     for (int i = 0; i < n; ++i) {
       bool capped = false;
       out.mutable_data()[i] = bernoulli_count(
-          [&] { return (beta < 1.0 && !(rng.next_double() < beta)) || rng.next_double() < p; }, max_trials, capped);
+          [&] { return mis_round(beta, [&] { return rng.next_double(); }, [&] { return rng.next_double() < p; }); },
+          max_trials, capped);
       capped_total += capped;
     }
     return py::make_tuple(out, capped_total);

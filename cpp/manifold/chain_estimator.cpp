@@ -106,6 +106,11 @@ double ChainEstimator::pmf_n_mix(int n, int nmax, const ChainDistribution* d, do
   return (1.0 - p_.guide_fraction) * p0 + p_.guide_fraction * pe;  // MPG Eq. 13
 }
 
+double ChainEstimator::area_light_pdf(size_t k) const {
+  const Emitter& e = scene_.emitters[size_t(chain_lights_[k])];
+  return light_dist_.pmf(k) / double(scene_.shapes[size_t(e.shape)].area);
+}
+
 bool ChainEstimator::sample_light(PCG32& rng, LightPoint& lp) const {
   float u = rng.next_float();
   const size_t k = light_dist_.sample(u);
@@ -119,7 +124,7 @@ bool ChainEstimator::sample_light(PCG32& rng, LightPoint& lp) const {
     lp.p = to_d(p);
     lp.n = to_d(n);
     lp.value = e.value;
-    lp.pdf = psel / double(s.area);
+    lp.pdf = area_light_pdf(k);  // the path tracer's side uses the same (pt_densities)
     lp.point = false;
   } else {
     lp.p = to_d(e.position);
@@ -350,10 +355,11 @@ int ChainEstimator::mis_rounds(const DVec3& xD, const DVec3& nD, const LightPoin
   return bernoulli_count(
       [&] {
         if (st.cancelled()) return true;  // the pass is dropped: any value will do
-        if (beta < 1.0 && !(rng.next_double() < beta)) return true;  // the b share of the round
-        st.bernoulli_trials++;
-        return trial(xD, nD, lp, n, offsets, seed_guide, rng, other, tau2, st) && tau2 == tau_star &&
-               glm::length(glm::normalize(other.v[0].p - xD) - w_star) < p_.uniqueness_threshold;
+        return mis_round(beta, [&] { return rng.next_double(); }, [&] {
+          st.bernoulli_trials++;
+          return trial(xD, nD, lp, n, offsets, seed_guide, rng, other, tau2, st) && tau2 == tau_star &&
+                 glm::length(glm::normalize(other.v[0].p - xD) - w_star) < p_.uniqueness_threshold;
+        });
       },
       p_.max_trials, capped);
 }
@@ -383,7 +389,7 @@ int ChainEstimator::pt_densities(const SurfaceInteraction& sep, const BSDFContex
   lp.p = c.xL;
   lp.n = c.nL;
   lp.value = e.value;
-  lp.pdf = light_dist_.pmf(size_t(k)) / double(scene_.shapes[size_t(e.shape)].area);
+  lp.pdf = area_light_pdf(size_t(k));
   lp.point = false;
   lp.emitter = emitter;
   guide = guide_at(sep.p, light.p, nullptr);
@@ -471,10 +477,7 @@ bool ChainEstimator::mis_pair(const Vec3& o, const Vec3& d, const Vec3& omega_D,
   if (!walk_.geometry_area(c, G)) return false;
   const int emitter = scene_.shapes[size_t(light.shape)].emitter;
   if (light_index_[size_t(emitter)] < 0) return false;
-  const Emitter& e = scene_.emitters[size_t(emitter)];
-  const double pdf_light = light_dist_.pmf(size_t(light_index_[size_t(emitter)])) /
-                           double(scene_.shapes[size_t(e.shape)].area);
-  ab[0] = pdf_light * pn_at(guide_at(sep.p, light.p, nullptr), int(tau.size()), max_len(0, uint32_t(-1)));
+  ab[0] = area_light_pdf(size_t(light_index_[size_t(emitter)])) * pn_at(guide_at(sep.p, light.p, nullptr), int(tau.size()), max_len(0, uint32_t(-1)));
   ab[1] = pt_density(c, tau, ctx, sep.wi, G);
   return true;
 }
@@ -515,7 +518,7 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     } else {
       n = sample_n(rng.next_float(), nmax);
     }
-    const double pn = pn_at(guide, n, nmax);
+    const double pn = pmf_n_mix(n, nmax, guide, mass);  // as pn_at, with the mass just summed
     // Offset normals of glossy vertices: drawn once, shared by all trials (the
     // admissible set is finite given them; method-notes Sec. 7).
     thread_local std::vector<Vec2> offsets;  // reused: no allocation per estimate

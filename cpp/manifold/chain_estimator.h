@@ -36,6 +36,15 @@ namespace mpg {
 // independent trials until `matches()` succeeds, this one included, so
 // E[K] = 1/p. At max_trials it stops with capped = true (then E[K] < 1/p: the
 // caller counts it).
+// One round of the MIS-aware count (ChainEstimator::mis_rounds; design-notes,
+// "Chain paths shared with the path tracer"): with probability beta the trial,
+// otherwise an immediate success, so P(success) = beta p + 1 - beta.
+template <typename U, typename F>
+bool mis_round(double beta, U&& uniform, F&& trial) {
+  if (beta < 1.0 && !(uniform() < beta)) return true;
+  return trial();
+}
+
 template <typename F>
 int bernoulli_count(F&& matches, int max_trials, bool& capped) {
   capped = false;
@@ -164,6 +173,8 @@ class ChainEstimator {
                     uint32_t max_depth, const SurfaceInteraction* verts, const std::string& tau,
                     const SurfaceInteraction& light, ManifoldChain& c, LightPoint& lp,
                     const ChainDistribution*& guide, double& a, double& b) const;
+  // Density per unit area of x_L on chain light k (area light): selection by power times 1/area.
+  double area_light_pdf(size_t k) const;
   // K' of the MIS-aware Bernoulli process: each round, with probability beta a
   // trial that succeeds iff it finds (tau*, omega*), otherwise an immediate
   // success; E[K'] = 1 / (beta P + 1 - beta). beta = 1: SMS's K, E = 1/P.
