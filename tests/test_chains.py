@@ -85,6 +85,7 @@ def _zcompare(a: mpg.Image, b: mpg.Image, regions):
     ({"type": "sms_star", "mis": False}, "sphere_glass.xml", 384),
     ({"type": "sms", "tau": "TT"}, "slab_glass.xml", 384),
     ({"type": "sms_star", "max_chain": 4}, "slab_glass.xml", 256),
+    ({"type": "sms_star", "chain_rate": 0.3}, "sphere_glass.xml", 768),
 ])
 def test_area_light_chains_agree_with_path_tracing(integ, scene, spp_chain, scenes_dir):
     """Chain estimates are heavy-tailed (rare large K x G): at 48x48 and 48 spp
@@ -99,6 +100,21 @@ def test_area_light_chains_agree_with_path_tracing(integ, scene, spp_chain, scen
     assert img.stats["rejected_samples"] == 0
     regions = [np.s_[:, :]] + [np.s_[i:i + 8, j:j + 8] for i in (0, 8, 16) for j in (0, 8, 16)]
     assert _zcompare(img, ref, regions) < 5
+
+
+def test_chain_rate_runs_the_estimator_at_that_fraction_of_separators(scenes_dir):
+    """Russian roulette on the chain estimate: with chain_rate q, about q of the
+    separators run it (the count is a sum over ~10^4 independent separators:
+    a binomial with relative sd < 2 %, tested at 10 %). Unbiasedness is the
+    chain_rate case of the agreement test above."""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
+    full = mpg.render(sc, integrator={"type": "sms_star"}, spp=32, seed=3, progress=False)
+    part = mpg.render(sc, integrator={"type": "sms_star", "chain_rate": 0.25}, spp=32, seed=4, progress=False)
+    ratio = part.stats["chain_estimates"] / full.stats["chain_estimates"]
+    assert full.stats["chain_estimates"] > 10000
+    assert abs(ratio - 0.25) < 0.1 * 0.25, ratio
+    with pytest.raises(mpg.RenderError, match="chain_rate"):
+        mpg.render(sc, integrator={"type": "sms_star", "chain_rate": 0.0}, spp=1, progress=False)
 
 
 def test_chains_behind_a_smooth_plastic_separator_agree_with_path_tracing(scenes_dir):

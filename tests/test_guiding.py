@@ -336,6 +336,7 @@ def _zmax(a, b, regions):
 @pytest.mark.parametrize("scene,params", [
     ("sphere_glass.xml", {}),
     ("slab_glass.xml", {}),
+    ("sphere_glass.xml", {"chain_rate": 1.0}),   # every separator (default 1/8)
     ("sphere_glass.xml", {"selective": True}),
     ("sphere_glass.xml", {"guide_n": False}),
     ("sphere_glass.xml", {"stree_filter": "none"}),

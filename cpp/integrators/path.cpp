@@ -91,7 +91,17 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     }
 
     // Light through specular chains, estimated at the separator.
-    if (chains_ && separator) L += beta * chains_->estimate(si, ctx, depth, max_depth, rng, st);
+    if (chains_ && separator) {
+      // Russian roulette on the (costly) chain estimate: E[1{u < q} X / q] = E[X]
+      // for any q > 0, and the path tracer's share of the chain paths does not
+      // depend on it, so the sum stays unbiased.
+      const float q = chains_->chain_rate();
+      if (q >= 1.f) {
+        L += beta * chains_->estimate(si, ctx, depth, max_depth, rng, st);
+      } else if (rng.next_float() < q) {
+        L += beta * chains_->estimate(si, ctx, depth, max_depth, rng, st) * (1.f / q);
+      }
+    }
 
     // BSDF sampling.
     const float u1 = rng.next_float();

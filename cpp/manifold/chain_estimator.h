@@ -79,6 +79,9 @@ struct ChainParams {
   // lights) by the balance heuristic instead of giving them whole to the estimator
   // (docs/design-notes.md, "Chain paths shared with the path tracer").
   bool mis = true;
+  // Probability that a separator runs the estimator at all (Russian roulette on
+  // the chain estimate, weighted 1/q; design-notes "Chain estimates by roulette").
+  float chain_rate = 1.0f;
 };
 
 class ChainEstimator {
@@ -86,6 +89,7 @@ class ChainEstimator {
   ChainEstimator(const Scene& scene, ChainParams p);
 
   bool active() const { return active_; }
+  float chain_rate() const { return p_.chain_rate; }
   // Does the estimator produce chains of type `tau` at a separator of loop depth
   // `depth` (path tracer's convention, camera hit = 0) under `max_depth`?
   bool owns(uint32_t depth, uint32_t max_depth, const std::string& tau) const;

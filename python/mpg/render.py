@@ -19,7 +19,7 @@ from mpg.scene.desc import IntegratorDesc, SceneDesc
 IMPLEMENTED = {"path", "sms", "sms_star", "mpg"}
 PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
-                "threshold", "max_iterations", "form", "glossy_threshold", "mis"}
+                "threshold", "max_iterations", "form", "glossy_threshold", "mis", "chain_rate"}
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
                 "guide_dir", "training_fraction", "stree_c", "stree_epsilon", "stree_filter",
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons"}
@@ -91,16 +91,19 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
     allowed = PATH_PARAMS | (CHAIN_PARAMS if name != "path" else set()) | (
         GUIDE_PARAMS if name == "mpg" else set())
     core_params = {k: v for k, v in params.items() if k in allowed}
-    for k in ("max_chain", "max_trials", "max_iterations"):
+    for k in ("max_chain", "max_trials", "max_iterations", "max_depth", "rr_depth"):
         if k in core_params:
-            core_params[k] = int(core_params[k])
+            try:
+                core_params[k] = int(core_params[k])
+            except (TypeError, ValueError):
+                raise RenderError(f"parameter {k} must be an integer, got '{core_params[k]}'") from None
     for k in ("continuation", "uniqueness_threshold", "threshold", "glossy_threshold",
-              "guide_fraction", "training_fraction", "stree_c", "stree_epsilon"):
+              "guide_fraction", "training_fraction", "stree_c", "stree_epsilon", "chain_rate"):
         if k in core_params:
-            core_params[k] = float(core_params[k])
-    for k in ("max_depth", "rr_depth"):
-        if k in core_params:
-            core_params[k] = int(core_params[k])
+            try:
+                core_params[k] = float(core_params[k])
+            except (TypeError, ValueError):
+                raise RenderError(f"parameter {k} must be a number, got '{core_params[k]}'") from None
     for k in BOOL_PARAMS & core_params.keys():
         core_params[k] = _as_bool(k, core_params[k])
     for k in ("stree_threshold", "knn_k", "photons"):
