@@ -111,6 +111,7 @@ def test_chain_rate_runs_the_estimator_at_that_fraction_of_separators(scenes_dir
     full = mpg.render(sc, integrator={"type": "sms_star"}, spp=32, seed=3, progress=False)
     part = mpg.render(sc, integrator={"type": "sms_star", "chain_rate": 0.25}, spp=32, seed=4, progress=False)
     ratio = part.stats["chain_estimates"] / full.stats["chain_estimates"]
+    assert full.stats["chain_skipped"] == 0 and part.stats["chain_skipped"] > 2 * part.stats["chain_estimates"]
     assert full.stats["chain_estimates"] > 10000
     assert abs(ratio - 0.25) < 0.1 * 0.25, ratio
     with pytest.raises(mpg.RenderError, match="chain_rate"):

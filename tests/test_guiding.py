@@ -337,7 +337,11 @@ def _zmax(a, b, regions):
     ("sphere_glass.xml", {}),
     ("slab_glass.xml", {}),
     ("sphere_glass.xml", {"chain_rate": 1.0}),   # every separator (default 1/8)
-    ("sphere_glass.xml", {"selective": True}),
+    # selective activation hands the young tree's empty leaves to the path
+    # tracer whole (rare hits of the light through the glass: a heavier tail);
+    # with the roulette's 1/8 of the estimates, 384 spp gave |z| up to 5.4 and
+    # 1024 spp up to 4.8 over 4 seeds, 4096 spp at most 3.2 over 3 seeds
+    ("sphere_glass.xml", {"selective": True, "spp": 4096}),
     ("sphere_glass.xml", {"guide_n": False}),
     ("sphere_glass.xml", {"stree_filter": "none"}),
     ("sphere_glass.xml", {"stree_filter": "stochastic"}),
@@ -349,13 +353,15 @@ def test_mpg_is_unbiased_against_path_tracing(scene, params, scenes_dir):
     heavy-tailed: at 48x48 and 96 spp one seed of the slab was measured at
     z = -6.6 in the caustic block (-0.5 with another seed), so the test uses
     fewer pixels and more samples (z within +-2.3 over three seeds there)."""
+    params = dict(params)
+    spp = params.pop("spp", 384)
     sc = mpg.load_file(scenes_dir / scene, res="24")
     ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
-    img = mpg.render(sc, integrator=dict(params, type="mpg"), spp=384, seed=12, progress=False)
+    img = mpg.render(sc, integrator=dict(params, type="mpg"), spp=spp, seed=12, progress=False)
     st = img.stats
     assert st["training_iterations"] >= 2 and st["subpath_samples"] > 0
     assert st["guided_trials"] > 0 and st["chain_contributions"] > 0
-    assert st["spp_training"] + st["spp_rendering"] == 384
+    assert st["spp_training"] + st["spp_rendering"] == spp
     assert st["rejected_samples"] == 0
     regions = [np.s_[:, :]] + [np.s_[i:i + 8, j:j + 8] for i in (0, 8, 16) for j in (0, 8, 16)]
     assert _zmax(img, ref, regions) < 5

@@ -100,6 +100,8 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
         L += beta * chains_->estimate(si, ctx, depth, max_depth, rng, st);
       } else if (rng.next_float() < q) {
         L += beta * chains_->estimate(si, ctx, depth, max_depth, rng, st) * (1.f / q);
+      } else {
+        st.chain_skipped++;
       }
     }
 

@@ -43,6 +43,7 @@ struct Stats {
   // guiding (mpg)
   uint64_t guided_trials = 0;        // trials whose seed came from the learned distribution
   uint64_t chain_inactive = 0;       // separators skipped by selective activation
+  uint64_t chain_skipped = 0;        // separators skipped by the roulette (chain_rate < 1)
   std::vector<SubpathSample> subpaths;  // recorded in training passes
   // the largest chain estimate (luminance) and its factors: where the heavy tail comes from
   double max_chain_value = 0.0, max_chain_K = 0.0, max_chain_G = 0.0, max_chain_pn = 0.0,
@@ -60,6 +61,7 @@ struct Stats {
     for (size_t i = 0; i < walk_failures.size(); ++i) walk_failures[i] += o.walk_failures[i];
     guided_trials += o.guided_trials;
     chain_inactive += o.chain_inactive;
+    chain_skipped += o.chain_skipped;
     subpaths.insert(subpaths.end(), o.subpaths.begin(), o.subpaths.end());
     if (o.max_chain_value > max_chain_value) {
       max_chain_value = o.max_chain_value; max_chain_K = o.max_chain_K; max_chain_G = o.max_chain_G;
@@ -78,6 +80,7 @@ struct Stats {
             {"owned_dropped", double(owned_dropped)}, {"owned_shared", double(owned_shared)}, {"chain_ns", double(chain_ns)},
             {"bernoulli_ns", double(bernoulli_ns)}, {"guide_ns", double(guide_ns)},
             {"guided_trials", double(guided_trials)}, {"chain_inactive", double(chain_inactive)},
+            {"chain_skipped", double(chain_skipped)},
             {"subpath_samples", double(subpaths.size())},
             {"max_chain_value", max_chain_value}, {"max_chain_K", max_chain_K},
             {"max_chain_G", max_chain_G}, {"max_chain_pn", max_chain_pn},
