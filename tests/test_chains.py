@@ -114,8 +114,10 @@ def test_chain_rate_runs_the_estimator_at_that_fraction_of_separators(scenes_dir
     assert full.stats["chain_skipped"] == 0 and part.stats["chain_skipped"] > 2 * part.stats["chain_estimates"]
     assert full.stats["chain_estimates"] > 10000
     assert abs(ratio - 0.25) < 0.1 * 0.25, ratio
-    with pytest.raises(mpg.RenderError, match="chain_rate"):
-        mpg.render(sc, integrator={"type": "sms_star", "chain_rate": 0.0}, spp=1, progress=False)
+    for integ in ("sms_star", "mpg"):
+        for bad in (0.0, 1e-6, 1.5, float("nan"), "often"):
+            with pytest.raises(mpg.RenderError, match="chain_rate"):
+                mpg.render(sc, integrator={"type": integ, "chain_rate": bad}, spp=1, progress=False)
 
 
 def test_chains_behind_a_smooth_plastic_separator_agree_with_path_tracing(scenes_dir):

@@ -211,7 +211,9 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
     // docs/results.md, "Chain estimates by roulette"); sms and sms_star keep the
     // papers' every-separator rule unless asked.
     cp.chain_rate = get<float>(p, "chain_rate", type == "mpg" ? 0.125f : 1.0f);
-    if (!(cp.chain_rate > 0.f && cp.chain_rate <= 1.f)) throw std::invalid_argument("chain_rate must be in (0, 1]");
+    // >= 1e-3: far above the uniform variate's resolution (2^-24), so the
+    // roulette's probability is q, and 1/q stays finite
+    if (!(cp.chain_rate >= 1e-3f && cp.chain_rate <= 1.f)) throw std::invalid_argument("chain_rate must be in [0.001, 1]");
     cp.walk = walk_config(p);
     if (cp.max_chain < 1) throw std::invalid_argument("max_chain must be >= 1");
     if (!(cp.continuation >= 0.f && cp.continuation < 1.f)) throw std::invalid_argument("continuation must be in [0, 1)");

@@ -31,10 +31,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", help="output EXR (default: out/<scene name>.exr)")
     p.add_argument("-D", dest="defines", action="append", type=_parse_define, default=[],
                    metavar="NAME=VALUE", help="override a <default> value of the scene")
-    p.add_argument("--integrator", help="integrator name: path, sms, sms_star (default: the scene's)")
+    p.add_argument("--integrator", help="integrator name: path, sms, sms_star, mpg (default: the scene's)")
     p.add_argument("-P", dest="iparams", action="append", type=_parse_define, default=[],
                    metavar="NAME=VALUE",
-                   help="integrator parameter, e.g. -P tau=TT -P max_depth=8 (repeatable)")
+                   help="integrator parameter, e.g. -P tau=TT -P max_depth=8 -P chain_rate=1 (repeatable)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--spp", type=int, help="samples per pixel (default: the scene's sampler)")
     g.add_argument("--time", type=float, help="time budget in seconds")

@@ -55,7 +55,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     build_seconds = 0.0
     leaves = 0
     # Effects follow the scene: no caster or no chain emitter -> no training at all.
-    probe = _core.make_integrator(core, "mpg", dict(params, record=True))
+    try:   # the core's own parameter checks (e.g. chain_rate), as a clear error
+        probe = _core.make_integrator(core, "mpg", dict(params, record=True))
+    except ValueError as e:
+        raise RenderError(str(e)) from None
 
     def build(buf):
         state = _core.GuidingState()
@@ -147,6 +150,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["stree_filter"] = structure_kw["filter"]
     st["guide_bytes"] = samples_last * _core.SUBPATH_SAMPLE_BYTES
     st["seconds"] = _time.monotonic() - t0
-    est = st.get("chain_estimates", 0) + st.get("chain_inactive", 0)
-    st["activation_rate"] = (st.get("chain_estimates", 0) / est) if est else 0.0
+    # chain_estimates counts every estimate started, chain_inactive those that
+    # selective activation then stopped
+    est = st.get("chain_estimates", 0)
+    st["activation_rate"] = ((est - st.get("chain_inactive", 0)) / est) if est else 0.0
     return img

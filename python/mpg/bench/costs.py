@@ -12,7 +12,7 @@ absent ones (documented in docs/results.md):
     seconds_bernoulli        time in Bernoulli trials (reciprocal-probability estimation; bernoulli_ns)
     seconds_specular         total time in specular-chain sampling
     subpath_samples          sub-path samples collected for training
-    activation_rate          fraction of separator vertices where chain sampling ran
+    activation_rate          fraction of the chain estimates started that selective activation let run
     bernoulli_trials         number of extra trials spent estimating 1/P
     max_chain_K, max_chain_G the Bernoulli count K and geometry term G of the largest single
                              chain estimate of the render (where the heavy tail comes from)
