@@ -95,14 +95,12 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
       // Russian roulette on the (costly) chain estimate: E[1{u < q} X / q] = E[X]
       // for any q > 0, and the path tracer's share of the chain paths does not
       // depend on it, so the sum stays unbiased.
+      // (q = 1 draws no variate: sms/sms_star images are unchanged.)
       const float q = chains_->chain_rate();
-      if (q >= 1.f) {
-        L += beta * chains_->estimate(si, ctx, depth, max_depth, rng, st);
-      } else if (rng.next_float() < q) {
+      if (q >= 1.f || rng.next_float() < q)
         L += beta * chains_->estimate(si, ctx, depth, max_depth, rng, st) * (1.f / q);
-      } else {
+      else
         st.chain_skipped++;
-      }
     }
 
     // BSDF sampling.

@@ -91,7 +91,8 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
     allowed = PATH_PARAMS | (CHAIN_PARAMS if name != "path" else set()) | (
         GUIDE_PARAMS if name == "mpg" else set())
     core_params = {k: v for k, v in params.items() if k in allowed}
-    for k in ("max_chain", "max_trials", "max_iterations", "max_depth", "rr_depth"):
+    for k in ("max_chain", "max_trials", "max_iterations", "max_depth", "rr_depth",
+              "stree_threshold", "knn_k", "photons"):
         if k in core_params:
             try:
                 core_params[k] = int(core_params[k])
@@ -106,12 +107,6 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
                 raise RenderError(f"parameter {k} must be a number, got '{core_params[k]}'") from None
     for k in BOOL_PARAMS & core_params.keys():
         core_params[k] = _as_bool(k, core_params[k])
-    for k in ("stree_threshold", "knn_k", "photons"):
-        if k in core_params:
-            try:
-                core_params[k] = int(core_params[k])
-            except (TypeError, ValueError):
-                raise RenderError(f"parameter {k} must be an integer, got '{core_params[k]}'") from None
     dropped = sorted(k for k in params if k not in allowed and k != "type")
     if dropped:
         warnings.append(f"integrator '{name}' ignores parameter(s) {', '.join(dropped)}")
