@@ -149,3 +149,19 @@ def binomial_z(k: int, n: int, p: float) -> float:
     """z-score of k successes out of n with success probability p."""
     sd = np.sqrt(max(n * p * (1.0 - p), 1e-300))
     return (k - n * p) / sd
+
+
+def image_zmax(a, b, regions) -> float:
+    """Largest |z| over regions (numpy slices) and channels between the means of
+    two independent renders, from their per-pixel variances of the mean."""
+    out = []
+    for sy, sx in regions:
+        A, B = a.rgb[sy, sx].astype(np.float64), b.rgb[sy, sx].astype(np.float64)
+        n = A[..., 0].size
+        se = np.sqrt(a.variance[sy, sx].sum(axis=(0, 1)) + b.variance[sy, sx].sum(axis=(0, 1))) / n
+        out.append(np.abs(A.mean(axis=(0, 1)) - B.mean(axis=(0, 1))) / np.maximum(se, 1e-12))
+    return float(np.max(out))
+
+
+# the image and its nine 8x8 blocks, for the 24x24 agreement tests
+REGIONS_24 = [np.s_[:, :]] + [np.s_[i:i + 8, j:j + 8] for i in (0, 8, 16) for j in (0, 8, 16)]

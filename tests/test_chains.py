@@ -9,6 +9,7 @@ import pytest
 
 import mpg
 from mpg import _core
+from stats_util import image_zmax
 
 CAM = """<sensor type="perspective"><float name="fov" value="{fov}"/>
   <transform name="to_world"><lookat origin="{o}" target="{t}" up="0, 0, -1"/></transform>
@@ -69,16 +70,6 @@ def test_point_light_through_mirror_closed_form(integ):
     assert img.stats["chain_contributions"] > 0
 
 
-def _zcompare(a: mpg.Image, b: mpg.Image, regions):
-    out = []
-    for sy, sx in regions:
-        A = a.rgb[sy, sx].astype(np.float64)
-        B = b.rgb[sy, sx].astype(np.float64)
-        n = A[..., 0].size
-        se = np.sqrt(a.variance[sy, sx].sum(axis=(0, 1)) + b.variance[sy, sx].sum(axis=(0, 1))) / n
-        out.append(np.abs(A.mean(axis=(0, 1)) - B.mean(axis=(0, 1))) / np.maximum(se, 1e-12))
-    return np.max(out)
-
 
 @pytest.mark.parametrize("integ,scene,spp_chain", [
     ({"type": "sms_star"}, "sphere_glass.xml", 384),
@@ -99,7 +90,7 @@ def test_area_light_chains_agree_with_path_tracing(integ, scene, spp_chain, scen
     assert (img.stats["owned_shared"] > 0) == integ.get("mis", True)
     assert img.stats["rejected_samples"] == 0
     regions = [np.s_[:, :]] + [np.s_[i:i + 8, j:j + 8] for i in (0, 8, 16) for j in (0, 8, 16)]
-    assert _zcompare(img, ref, regions) < 5
+    assert image_zmax(img, ref, regions) < 5
 
 
 def test_chain_rate_runs_the_estimator_at_that_fraction_of_separators(scenes_dir):
@@ -139,7 +130,7 @@ def test_chains_behind_a_smooth_plastic_separator_agree_with_path_tracing(scenes
     for mis in (True, False):
         img = mpg.render(sc, integrator={"type": "sms_star", "mis": mis}, spp=384, seed=12, progress=False)
         assert img.stats["chain_contributions"] > 0 and img.stats["rejected_samples"] == 0
-        assert _zcompare(img, ref, regions) < 5, mis
+        assert image_zmax(img, ref, regions) < 5, mis
 
 
 def test_chains_switch_off_without_specular_casters():
@@ -235,7 +226,7 @@ def test_ring_sms_sums_all_solutions():
     img = mpg.render(sc, integrator={"type": "sms", "tau": "R"}, spp=512, seed=2, progress=False)
     assert img.stats["chain_contributions"] > 100
     regions = [np.s_[:, :]] + [np.s_[i:i + 8, j:j + 8] for i in range(0, 24, 8) for j in range(0, 24, 8)]
-    assert _zcompare(img, ref, regions) < 5
+    assert image_zmax(img, ref, regions) < 5
 
 
 NORMALMAPPED = """<scene version="3.0.0"><integrator type="path"><integer name="max_depth" value="5"/></integrator>

@@ -8,7 +8,7 @@ import pytest
 
 from mpg import _core
 
-from stats_util import sphere_gof, uniform_u
+from stats_util import image_zmax, sphere_gof, uniform_u
 
 
 def _samples(N, seed=0, clusters=6):
@@ -323,20 +323,12 @@ def test_vmf_mixture_sampler_matches_its_density():
 import mpg  # noqa: E402
 
 
-def _zmax(a, b, regions):
-    out = []
-    for sy, sx in regions:
-        A, B = a.rgb[sy, sx].astype(np.float64), b.rgb[sy, sx].astype(np.float64)
-        n = A[..., 0].size
-        se = np.sqrt(a.variance[sy, sx].sum(axis=(0, 1)) + b.variance[sy, sx].sum(axis=(0, 1))) / n
-        out.append(np.abs(A.mean(axis=(0, 1)) - B.mean(axis=(0, 1))) / np.maximum(se, 1e-12))
-    return float(np.max(out))
-
 
 @pytest.mark.parametrize("scene,params", [
     ("sphere_glass.xml", {}),
     ("slab_glass.xml", {}),
-    ("sphere_glass.xml", {"chain_rate": 1.0}),   # every separator (default 1/8)
+    ("sphere_glass.xml", {"chain_rate": 1.0}),     # every separator (default: learned per pixel)
+    ("sphere_glass.xml", {"chain_rate": 0.125}),   # one rate for the image
     # selective activation hands the young tree's empty leaves to the path
     # tracer whole (rare hits of the light through the glass: a heavier tail);
     # with the roulette's 1/8 of the estimates, 384 spp gave |z| up to 5.4 and
@@ -363,8 +355,12 @@ def test_mpg_is_unbiased_against_path_tracing(scene, params, scenes_dir):
     assert st["guided_trials"] > 0 and st["chain_contributions"] > 0
     assert st["spp_training"] + st["spp_rendering"] == spp
     assert st["rejected_samples"] == 0
+    # the default learns a rate per pixel from the training passes
+    assert st["chain_rate_mode"] == ("fixed" if "chain_rate" in params else "per-pixel")
+    if "chain_rate" not in params:
+        assert 1 / 32 <= st["chain_rate_mean"] <= 1
     regions = [np.s_[:, :]] + [np.s_[i:i + 8, j:j + 8] for i in (0, 8, 16) for j in (0, 8, 16)]
-    assert _zmax(img, ref, regions) < 5
+    assert image_zmax(img, ref, regions) < 5
 
 
 def test_mpg_rejects_unknown_guiding_options(scenes_dir):

@@ -15,7 +15,7 @@ from mpg import _core
 from mpg.errors import RenderError
 
 from test_chains import mirror_expected, mirror_scene
-from test_guiding import _zmax
+from stats_util import image_zmax
 
 
 def _photons(scene, count, seed, **params):
@@ -104,7 +104,7 @@ def test_mpg_options_are_unbiased_against_path_tracing(params, scenes_dir):
     assert st["rejected_samples"] == 0
     assert not any("ignores" in w for w in st["warnings"])
     regions = [np.s_[:, :]] + [np.s_[i:i + 8, j:j + 8] for i in (0, 8, 16) for j in (0, 8, 16)]
-    assert _zmax(img, ref, regions) < 5
+    assert image_zmax(img, ref, regions) < 5
 
 
 @pytest.mark.parametrize("params", [{"init": "photon"}, {"init": "photon", "training_fraction": 0.0}])

@@ -147,6 +147,16 @@ py::dict pass_to_dict(PassResult& r) {
   out["spp"] = r.spp;
   out["seconds"] = r.seconds;
   out["cancelled"] = r.cancelled;
+  if (!r.chain_m2.empty()) {
+    std::vector<ssize_t> shape2 = {r.height, r.width};
+    DArray m2(shape2), cns(shape2), pns(shape2);
+    std::copy(r.chain_m2.begin(), r.chain_m2.end(), m2.mutable_data());
+    std::copy(r.chain_ns.begin(), r.chain_ns.end(), cns.mutable_data());
+    std::copy(r.pixel_ns.begin(), r.pixel_ns.end(), pns.mutable_data());
+    out["chain_m2"] = m2;
+    out["chain_ns"] = cns;
+    out["pixel_ns"] = pns;
+  }
   auto st = r.stats.to_map();
   for (size_t i = 1; i < r.stats.walk_failures.size(); ++i)
     st[std::string("walk_fail_") + walk_failure_name(WalkFailure(i))] = double(r.stats.walk_failures[i]);
@@ -588,15 +598,26 @@ PYBIND11_MODULE(_core, m) {
 
   py::class_<RenderJob, std::shared_ptr<RenderJob>>(m, "RenderJob")
       .def(py::init([](std::shared_ptr<Scene> scene, std::shared_ptr<Integrator> integ, int spp, uint64_t seed,
-                       uint64_t pass, int threads) {
+                       uint64_t pass, int threads, py::object chain_rate_map, bool record_costs) {
         if (!scene->committed()) throw std::runtime_error("scene not committed");
         if (spp < 1) throw std::invalid_argument("spp must be >= 1");
         PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
+        cfg.record_costs = record_costs;
+        if (!chain_rate_map.is_none()) {
+          const FArray a = py::cast<FArray>(chain_rate_map);
+          const Camera& c = scene->camera;
+          if (a.ndim() != 2 || a.shape(0) != c.crop_h || a.shape(1) != c.crop_w)
+            throw std::invalid_argument("chain_rate_map must have shape (crop height, crop width)");
+          auto m = std::make_shared<std::vector<float>>(a.data(), a.data() + a.size());
+          for (float q : *m)
+            if (!(q >= 1e-3f && q <= 1.f)) throw std::invalid_argument("chain_rate_map values must be in [0.001, 1]");
+          cfg.chain_rate_map = std::move(m);
+        }
         auto job = std::make_shared<RenderJob>(scene, integ, cfg);
         job->start();
         return job;
       }), py::arg("scene"), py::arg("integrator"), py::arg("spp"), py::arg("seed") = 0, py::arg("pass_index") = 0,
-         py::arg("threads") = 0)
+         py::arg("threads") = 0, py::arg("chain_rate_map") = py::none(), py::arg("record_costs") = false)
       .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
       .def("cancel", &RenderJob::cancel)
       .def_property_readonly("progress", &RenderJob::progress)

@@ -96,11 +96,18 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
       // for any q > 0, and the path tracer's share of the chain paths does not
       // depend on it, so the sum stays unbiased.
       // (q = 1 draws no variate: sms/sms_star images are unchanged.)
-      const float q = chains_->chain_rate();
-      if (q >= 1.f || rng.next_float() < q)
-        L += beta * chains_->estimate(si, ctx, depth, max_depth, rng, st) * (1.f / q);
-      else
+      // q is the pixel's rate when the pass has a map (mpg's learned rates),
+      // the estimator's otherwise.
+      const float q = st.pixel_chain_rate > 0.f ? st.pixel_chain_rate : chains_->chain_rate();
+      if (q >= 1.f || rng.next_float() < q) {
+        const Color X = beta * chains_->estimate(si, ctx, depth, max_depth, rng, st);
+        L += X * (1.f / q);
+        // (a non-finite X rejects the whole sample, render.cpp: not counted here)
+        const double m2 = (double(X.x) * X.x + double(X.y) * X.y + double(X.z) * X.z) / (3.0 * double(q));
+        if (std::isfinite(m2)) st.pixel_chain_m2 += m2;
+      } else {
         st.chain_skipped++;
+      }
     }
 
     // BSDF sampling.

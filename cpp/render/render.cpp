@@ -47,6 +47,14 @@ void RenderJob::run() {
   result_.spp = cfg_.spp;
   result_.sum.assign(size_t(W) * H * 3, 0.0);
   result_.sum_sq.assign(size_t(W) * H * 3, 0.0);
+  const bool costs = cfg_.record_costs;
+  if (costs) {
+    result_.chain_m2.assign(size_t(W) * H, 0.0);
+    result_.chain_ns.assign(size_t(W) * H, 0.0);
+    result_.pixel_ns.assign(size_t(W) * H, 0.0);
+  }
+  const std::vector<float>* qmap = cfg_.chain_rate_map.get();
+  if (qmap && qmap->size() != size_t(W) * H) qmap = nullptr;  // checked by the bindings
   int nthreads = cfg_.threads > 0 ? cfg_.threads : int(std::thread::hardware_concurrency());
   nthreads = std::max(1, std::min(nthreads, tiles_total_));
   std::atomic<int> next_tile{0};
@@ -69,6 +77,10 @@ void RenderJob::run() {
           const int fx = cam.crop_x + x, fy = cam.crop_y + y;
           const uint64_t pixel = uint64_t(fy) * uint64_t(cam.width) + uint64_t(fx);
           double s[3] = {0, 0, 0}, s2[3] = {0, 0, 0};
+          st.pixel_chain_rate = qmap ? (*qmap)[size_t(y) * W + x] : 0.f;
+          st.pixel_chain_m2 = 0.0;
+          const uint64_t chain_ns0 = st.chain_ns;
+          const auto pixel_t0 = costs ? std::chrono::steady_clock::now() : std::chrono::steady_clock::time_point();
           for (int k = 0; k < cfg_.spp; ++k) {
             // A cancelled pass is dropped whole (never splatted), so stopping
             // mid-tile is safe; checking per sample bounds the overshoot of a
@@ -101,6 +113,13 @@ void RenderJob::run() {
           for (int c = 0; c < 3; ++c) {
             result_.sum[i + c] = s[c];
             result_.sum_sq[i + c] = s2[c];
+          }
+          if (costs) {
+            const size_t j = size_t(y) * W + x;
+            result_.chain_m2[j] = st.pixel_chain_m2;
+            result_.chain_ns[j] = double(st.chain_ns - chain_ns0);
+            result_.pixel_ns[j] =
+                std::chrono::duration<double, std::nano>(std::chrono::steady_clock::now() - pixel_t0).count();
           }
         }
       }

@@ -18,6 +18,10 @@ namespace mpg {
 struct PassResult {
   int width = 0, height = 0, spp = 0;
   std::vector<double> sum, sum_sq;  // height x width x 3: sums of sample values and squares
+  // With PassConfig::record_costs, per pixel (height x width): the sum over its
+  // samples of the chain second moment (Stats::pixel_chain_m2), the nanoseconds
+  // spent in chain estimates, and in the whole pixel.
+  std::vector<double> chain_m2, chain_ns, pixel_ns;
   Stats stats;
   double seconds = 0.0;
   bool cancelled = false;
@@ -29,6 +33,9 @@ struct PassConfig {
   uint64_t pass = 0;
   int threads = 0;   // 0: all hardware threads
   int tile = 16;
+  // Per-pixel chain rate (crop height x width, each in [0.001, 1]), or null.
+  std::shared_ptr<const std::vector<float>> chain_rate_map;
+  bool record_costs = false;
 };
 
 class RenderJob {

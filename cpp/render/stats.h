@@ -19,6 +19,13 @@ struct Stats {
   // (a sample can run up to max_trials walks, seconds with long chains).
   const std::atomic<bool>* cancel = nullptr;
   bool cancelled() const { return cancel && cancel->load(std::memory_order_relaxed); }
+  // Per-pixel context set by the render worker (not merged): the pixel's chain
+  // rate from the pass's map (0: the estimator's own), and the running sum over
+  // the pixel's samples of sum_j X_j^2 / q, X_j a chain estimate run at rate q
+  // (unweighted, mean over RGB): an unbiased estimate of the second moment the
+  // roulette multiplies by (1/q - 1) (design-notes "Chain rates per pixel").
+  float pixel_chain_rate = 0.f;
+  double pixel_chain_m2 = 0.0;
   uint64_t samples = 0;
   uint64_t camera_rays = 0;
   uint64_t rays = 0;           // intersection queries

@@ -133,6 +133,14 @@ def _run(args) -> int:
         print(f"mpg-render: wrote {out}" + (f" and {preview}" if preview else "")
               + f": {img.spp} spp, {st['seconds']:.2f} s, "
               f"{st['samples_per_second'] / 1e6:.2f} M samples/s{state}", file=sys.stderr)
+        if st.get("integrator") == "mpg" and st.get("training_iterations", 0) > 0:
+            rates = (f"chain rates per pixel: mean {st['chain_rate_mean']:.3f}, "
+                     f"{100 * st['chain_rate_fraction_one']:.0f} % at 1"
+                     if st.get("chain_rate_mode") == "per-pixel"
+                     else f"chain rate {st['integrator_params'].get('chain_rate')}")
+            print(f"mpg-render: mpg trained {st['training_iterations']} iterations "
+                  f"({st['spp_training']} spp, {st['seconds_training']:.1f} s), "
+                  f"{st['guide_leaves']} leaves; {rates}", file=sys.stderr)
         if st["rejected_samples"]:
             print(f"mpg-render: rejected {st['rejected_samples']} samples with NaN/Inf/negative "
                   f"values (NaN {st.get('rejected_nan', 0)}, Inf {st.get('rejected_inf', 0)}, "

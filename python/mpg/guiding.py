@@ -14,6 +14,7 @@ import sys
 import time as _time
 from typing import Any
 
+from mpg.chain_rates import CostAccumulator, learn_rates
 from mpg.errors import RenderError
 
 def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
@@ -32,6 +33,22 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         structure=str(params.pop("guide_structure", "stree")),
         knn_k=int(params.pop("knn_k", 0)),
     )
+    # chain_rate: a number (one rate, as sms_star's) or "auto" (the default): rates
+    # per pixel learned from the training passes, which run at chain_rate_train
+    # (mpg.chain_rates; design-notes "Chain rates per pixel").
+    rate = params.pop("chain_rate", "auto")
+    q_min = float(params.pop("chain_rate_min", 1.0 / 32))
+    q_train = float(params.pop("chain_rate_train", 0.125))
+    objective = str(params.pop("chain_rate_objective", "relmse"))
+    if objective not in ("mse", "relmse"):
+        raise RenderError(f"chain_rate_objective must be 'mse' or 'relmse', got '{objective}'")
+    auto = isinstance(rate, str)
+    if auto and rate != "auto":
+        raise RenderError(f"chain_rate must be a number in [0.001, 1] or 'auto', got '{rate}'")
+    for nm, v in (("chain_rate_min", q_min), ("chain_rate_train", q_train)):
+        if not 1e-3 <= v <= 1.0:
+            raise RenderError(f"{nm} must be in [0.001, 1], got {v}")
+    params["chain_rate"] = q_train if auto else rate
     init = str(params.pop("init", "surface"))
     n_photons = int(params.pop("photons", 200_000))
     if not 0.0 <= frac < 1.0:
@@ -67,6 +84,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
 
     photon_samples = 0
     seconds_photons = 0.0
+    costs = None
     if probe.chains_active and frac > 0.0:
         budget_spp = None if spp is None else max(0, int(frac * spp))
         budget_t = None if time is None else frac * time
@@ -85,6 +103,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                                  f"{leaves} leaves, {seconds_photons:.2f} s\n")
         k = 1
         last_iter_t = None
+        if auto:
+            cam = scene.desc.camera
+            costs = CostAccumulator((int(cam.crop[3]), int(cam.crop[2])))
         while True:
             used_t = _time.monotonic() - t0
             if budget_spp is not None and (spp_train + k > budget_spp or spp_train >= budget_spp / 2):
@@ -100,7 +121,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             # Training passes use the render's chain_rate too (measured on sphere,
             # 3 seeds x 30 s: MSE 0.034 with it, 0.044 with training at 1).
             integ = _core.make_integrator(core, "mpg", dict(params, record=True, guide=guide))
-            job = _core.RenderJob(core, integ, k, seed, 1_000_000 + iterations, threads or 0)
+            job = _core.RenderJob(core, integ, k, seed, 1_000_000 + iterations, threads or 0,
+                                  record_costs=auto)
             while not job.wait(0.05):
                 if budget_t is not None and _time.monotonic() - t0 > budget_t:
                     job.cancel()
@@ -109,6 +131,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                 break
             spp_train += k
             iterations += 1
+            if costs is not None:
+                costs.add(r, k, params["chain_rate"])
             last_iter_t = _time.monotonic() - iter_t0
             buf = r["subpaths"]
             samples_last = len(buf)
@@ -127,15 +151,25 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             k *= 2
         if show:
             sys.stderr.write("\n")
+    rate_info: dict[str, Any] = {}
+    qmap = None
+    if costs is not None:
+        qmap, rate_info = learn_rates(costs, q_min=q_min, objective=objective)
+        if not rate_info.get("chain_rate_learned"):
+            qmap = None   # too little training: the training rate throughout
     seconds_training = _time.monotonic() - t0
     rest_spp = None if spp is None else max(1, spp - spp_train)
     rest_t = None if time is None else max(0.05, time - seconds_training)
     img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
-                 spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress)
+                 spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
+                 chain_rate_map=qmap)
     st: dict[str, Any] = img.stats
     st["warnings"] = list(dict.fromkeys(st.get("warnings", []) + warnings))
     st["integrator"] = "mpg"
     st["integrator_params"] = {k: v for k, v in params.items() if k != "guide"}
+    st["integrator_params"]["chain_rate"] = rate
+    st["chain_rate_mode"] = "per-pixel" if qmap is not None else "fixed"
+    st.update(rate_info)
     st["spp_training"] = spp_train
     st["spp_rendering"] = img.spp
     st["training_iterations"] = iterations

@@ -22,7 +22,8 @@ CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max
                 "threshold", "max_iterations", "form", "glossy_threshold", "mis", "chain_rate"}
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
                 "guide_dir", "training_fraction", "stree_c", "stree_epsilon", "stree_filter",
-                "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons"}
+                "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
+                "chain_rate_min", "chain_rate_train", "chain_rate_objective"}
 BOOL_PARAMS = {"hide_emitters", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
@@ -99,7 +100,11 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
             except (TypeError, ValueError):
                 raise RenderError(f"parameter {k} must be an integer, got '{core_params[k]}'") from None
     for k in ("continuation", "uniqueness_threshold", "threshold", "glossy_threshold",
-              "guide_fraction", "training_fraction", "stree_c", "stree_epsilon", "chain_rate"):
+              "guide_fraction", "training_fraction", "stree_c", "stree_epsilon", "chain_rate",
+              "chain_rate_min", "chain_rate_train"):
+        if k == "chain_rate" and name == "mpg" and str(core_params.get(k)).strip().lower() == "auto":
+            core_params[k] = "auto"   # mpg: rates learned per pixel in training (mpg.chain_rates)
+            continue
         if k in core_params:
             try:
                 core_params[k] = float(core_params[k])
@@ -206,6 +211,7 @@ def render(
     seed: int = 0,
     threads: int | None = None,
     progress: bool | None = None,
+    chain_rate_map: np.ndarray | None = None,
 ) -> Image:
     """Render `scene` and return an Image.
 
@@ -215,6 +221,7 @@ def render(
         later passes stop within one sample of the limit and are dropped whole.
     The image is bit-identical for a given (seed, spp) whatever the thread count.
     Ctrl-C stops the render and returns what was accumulated (stats['interrupted']).
+    chain_rate_map: per-pixel chain rates (crop height x width), mpg's learned ones.
     """
     from mpg import _core
 
@@ -275,7 +282,8 @@ def render(
                     # (a sample can run thousands of Bernoulli trials).
                     k = max(1, min(k, int(min(0.5 * left, time / 8) / pass_seconds_per_spp)))
             pass_t0 = _time.monotonic()
-            job = _core.RenderJob(core_scene, integ, k, seed, passes, threads or 0)
+            job = _core.RenderJob(core_scene, integ, k, seed, passes, threads or 0,
+                                  chain_rate_map=chain_rate_map)
             cancelled_by_time = False
             try:
                 while not job.wait(0.05):

@@ -1,0 +1,163 @@
+"""Per-pixel chain rates (mpg.chain_rates, design-notes "Chain rates per pixel"):
+the learned rates minimise the modelled error x time, the render honours a
+rate map and stays unbiased under any map, and bad maps are refused."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as hst
+
+import mpg
+from mpg import _core
+from mpg.chain_rates import CostAccumulator, learn_rates
+from stats_util import REGIONS_24, image_zmax
+
+
+def _acc(m2, c1, c0, var, n=64, q_t=0.125, mean=0.5):
+    """An accumulator whose sums give the per-sample moments m2, c1 (chain time at
+    q = 1), c0 (other time) and per-pixel variance var, as if n samples at q_t."""
+    h, w = m2.shape
+    a = CostAccumulator((h, w))
+    a.n = n
+    a.chain_m2 = m2 * n
+    a.chain_ns = c1 * q_t * n
+    a.pixel_ns = (c0 + q_t * c1) * n
+    a.rate_sum = np.full((h, w), q_t * n)
+    # sum and sum_sq with the given mean and variance var (n/(n-1) correction undone)
+    mean = np.broadcast_to(np.asarray(mean, dtype=float), (h, w))
+    a.sum = np.repeat((mean * n)[..., None], 3, axis=2)
+    a.sum_sq = np.repeat(((var * (n - 1) / n) + mean * mean)[..., None] * n, 3, axis=2)
+    return a
+
+
+def _objective(q, m2, c1, c0, v1, w=1.0):
+    """mean wV x mean C: the image's (weighted) MSE after a fixed time, up to a constant."""
+    return np.mean(w * (v1 + (1 / q - 1) * m2)) * np.mean(c0 + q * c1)
+
+
+def test_rates_follow_where_the_chains_carry_the_error():
+    """Pixels whose chain estimates carry most of the variance get q = 1, pixels
+    whose estimates cost time and return nothing get q_min, pixels without
+    chain work keep 1 (the rate is never used there)."""
+    h, w = 8, 24
+    m2 = np.zeros((h, w))
+    m2[:, :8] = 50.0            # a caustic only the estimator finds: all the variance
+    c1 = np.full((h, w), 5e3)
+    c1[:, 16:] = 0.0            # no separator sees a chain here
+    c0 = np.full((h, w), 1e3)
+    var = np.full((h, w), 1.0)
+    var[:, :8] += (1 / 0.125 - 1) * 50.0
+    q, info = learn_rates(_acc(m2, c1, c0, var), q_min=1 / 32, radius=0)
+    assert q.dtype == np.float32 and q.shape == (h, w)
+    assert np.all(q[:, :8] == 1.0)
+    assert np.all(q[:, 8:16] == np.float32(1 / 32))
+    assert np.all(q[:, 16:] == 1.0)
+    assert info["chain_rate_learned"] and 0 < info["chain_rate_fraction_one"] < 1
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=hst.integers(0, 2**32 - 1), q_min=hst.sampled_from([1e-3, 1 / 32, 0.25]),
+       objective=hst.sampled_from(["mse", "relmse"]))
+def test_learned_rates_beat_every_single_rate(seed, q_min, objective):
+    """The fixed point of Eq. (1) is the box-constrained optimum of
+    mean(wV) x mean(C) (w = 1, or 1/(I^2 + 0.01) for relmse): no constant rate
+    in [q_min, 1] does better (1e-5 slack for the iteration's tolerance), nor
+    do small perturbations of the rates."""
+    rng = np.random.default_rng(seed)
+    h, w = 6, 10
+    m2 = rng.lognormal(0.0, 3.0, (h, w)) * (rng.random((h, w)) < 0.7)
+    c1 = rng.lognormal(8.0, 1.0, (h, w))
+    c0 = rng.lognormal(7.0, 0.5, (h, w))
+    v1 = rng.lognormal(0.0, 2.0, (h, w))
+    var = v1 + (1 / 0.125 - 1) * m2
+    mean = rng.lognormal(-1.0, 1.5, (h, w))
+    w = 1.0 / (mean**2 + 0.01) if objective == "relmse" else 1.0
+    q, _ = learn_rates(_acc(m2, c1, c0, var, mean=mean), q_min=q_min, radius=0, iterations=500,
+                       objective=objective)
+    q = q.astype(np.float64)
+    assert np.all((q >= np.float32(q_min)) & (q <= 1.0))
+    best = _objective(q, m2, c1, c0, v1, w)
+    for c in np.geomspace(q_min, 1.0, 25):
+        assert best <= _objective(np.full_like(q, c), m2, c1, c0, v1, w) * (1 + 1e-5)
+    for _ in range(10):
+        p = np.clip(q * np.exp(rng.normal(0, 0.05, q.shape)), q_min, 1.0)
+        assert best <= _objective(p, m2, c1, c0, v1, w) * (1 + 1e-5)
+
+
+def test_rates_survive_non_finite_and_empty_statistics():
+    """NaN/Inf in the sums (a rejected sample's square) or no training at all
+    end in rates in [q_min, 1], never NaN."""
+    h, w = 4, 5
+    a = _acc(np.full((h, w), 2.0), np.full((h, w), 1e4), np.full((h, w), 1e3), np.full((h, w), 20.0))
+    a.chain_m2[0, 0] = np.nan
+    a.sum_sq[1, 1, 0] = np.inf
+    a.pixel_ns[2, 2] = -np.inf
+    q, _ = learn_rates(a, q_min=0.01)
+    assert np.all(np.isfinite(q)) and np.all((q >= np.float32(0.01)) & (q <= 1))
+    q, info = learn_rates(CostAccumulator((h, w)))
+    assert np.all(q == 1.0) and not info["chain_rate_learned"]
+
+
+def test_a_rate_map_sets_the_roulette_per_pixel(scenes_dir):
+    """Left half q = 1, right half q = 0.2: the right half skips estimates, the
+    left half none; the pass reports per-pixel costs when asked; a map of ones
+    gives the image of chain_rate = 1 bit for bit (q = 1 draws no variate)."""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
+    core = sc.core
+    integ = _core.make_integrator(core, "sms_star", {})
+    qmap = np.ones((24, 24), np.float32)
+    qmap[:, 12:] = 0.2
+    right = qmap.copy()
+    right[:, :12] = 0.001   # only the left half estimates (almost) everywhere
+
+    def run(m, costs=False, seed=5):
+        job = _core.RenderJob(core, integ, 8, seed, 0, 0, chain_rate_map=m, record_costs=costs)
+        while not job.wait(0.05):
+            pass
+        return job.result()
+
+    full = run(None)
+    ones = run(np.ones((24, 24), np.float32))
+    assert np.array_equal(full["sum"], ones["sum"]) and "chain_m2" not in full
+    half = run(qmap, costs=True)
+    assert half["stats"]["chain_skipped"] > 0
+    assert half["chain_m2"].shape == (24, 24) and np.all(half["chain_m2"] >= 0)
+    assert np.all(half["pixel_ns"] >= half["chain_ns"]) and np.all(half["chain_ns"] >= 0)
+    # chain time lands where the estimates run: the left half (q = 1) against
+    # the right (q = 0.2) of the same symmetric-ish scene, summed over many pixels
+    lft, rgt = half["chain_ns"][:, :12].sum(), half["chain_ns"][:, 12:].sum()
+    assert lft > 0 and rgt > 0
+    for bad, msg in ((np.ones((24, 23), np.float32), "shape"), (np.zeros((24, 24), np.float32), "values"),
+                     (np.full((24, 24), np.nan, np.float32), "values")):
+        with pytest.raises(ValueError, match=msg):
+            run(bad)
+
+
+def test_an_arbitrary_rate_map_keeps_the_image_unbiased(scenes_dir):
+    """Any per-pixel rates in (0, 1] fixed before the render leave the
+    expectation alone: a random map in [0.05, 1] on sms_star agrees with the
+    path tracer (|z| < 5 on the image and nine regions, p < 6e-7 each)."""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
+    rng = np.random.default_rng(7)
+    qmap = np.exp(rng.uniform(np.log(0.05), 0.0, (24, 24))).astype(np.float32)
+    ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
+    img = mpg.render(sc, integrator={"type": "sms_star"}, spp=1024, seed=13, progress=False,
+                     chain_rate_map=qmap)
+    st = img.stats
+    assert st["chain_skipped"] > 0 and st["chain_contributions"] > 0
+    assert st["rejected_samples"] == 0
+    assert image_zmax(img, ref, REGIONS_24) < 5
+
+
+def test_bad_chain_rate_settings_are_clear_errors(scenes_dir):
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="8")
+    for params, msg in (({"type": "mpg", "chain_rate_min": 0.0}, "chain_rate_min"),
+                        ({"type": "mpg", "chain_rate_min": 2}, "chain_rate_min"),
+                        ({"type": "mpg", "chain_rate_train": "x"}, "chain_rate_train"),
+                        ({"type": "mpg", "chain_rate": "sometimes"}, "chain_rate"),
+                        ({"type": "mpg", "chain_rate_objective": "mape"}, "chain_rate_objective"),
+                        ({"type": "sms_star", "chain_rate": "auto"}, "chain_rate")):   # learned rates need training
+        with pytest.raises(mpg.RenderError, match=msg):
+            mpg.render(sc, integrator=params, spp=4, seed=1, progress=False)
