@@ -11,19 +11,21 @@ from hypothesis import strategies as hst
 
 import mpg
 from mpg import _core
-from mpg.chain_rates import CostAccumulator, learn_rates
+from mpg.chain_rates import STEP_COST, CostAccumulator, learn_rates
 from stats_util import REGIONS_24, image_zmax
 
 
 def _acc(m2, c1, c0, var, n=64, q_t=0.125, mean=0.5):
-    """An accumulator whose sums give the per-sample moments m2, c1 (chain time at
-    q = 1), c0 (other time) and per-pixel variance var, as if n samples at q_t."""
+    """An accumulator whose sums give the per-sample moments m2, c1 (chain cost at
+    q = 1), c0 (other cost, in rays) and per-pixel variance var, as if n samples
+    at q_t (no MIS-round walks: walk_steps = chain_steps)."""
     h, w = m2.shape
     a = CostAccumulator((h, w))
     a.n = n
     a.chain_m2 = m2 * n
-    a.chain_ns = c1 * q_t * n
-    a.pixel_ns = (c0 + q_t * c1) * n
+    a.chain_steps = c1 / STEP_COST * q_t * n
+    a.walk_steps = a.chain_steps.copy()
+    a.rays = c0 * n
     a.rate_sum = np.full((h, w), q_t * n)
     # sum and sum_sq with the given mean and variance var (n/(n-1) correction undone)
     mean = np.broadcast_to(np.asarray(mean, dtype=float), (h, w))
@@ -93,46 +95,64 @@ def test_rates_survive_non_finite_and_empty_statistics():
     a = _acc(np.full((h, w), 2.0), np.full((h, w), 1e4), np.full((h, w), 1e3), np.full((h, w), 20.0))
     a.chain_m2[0, 0] = np.nan
     a.sum_sq[1, 1, 0] = np.inf
-    a.pixel_ns[2, 2] = -np.inf
+    a.rays[2, 2] = -np.inf
+    before = a.chain_m2.copy()
     q, _ = learn_rates(a, q_min=0.01)
     assert np.all(np.isfinite(q)) and np.all((q >= np.float32(0.01)) & (q <= 1))
+    assert np.array_equal(before, a.chain_m2, equal_nan=True)   # the caller's sums are left alone
     q, info = learn_rates(CostAccumulator((h, w)))
     assert np.all(q == 1.0) and not info["chain_rate_learned"]
 
 
 def test_a_rate_map_sets_the_roulette_per_pixel(scenes_dir):
-    """Left half q = 1, right half q = 0.2: the right half skips estimates, the
-    left half none; the pass reports per-pixel costs when asked; a map of ones
-    gives the image of chain_rate = 1 bit for bit (q = 1 draws no variate)."""
-    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
-    core = sc.core
-    integ = _core.make_integrator(core, "sms_star", {})
-    qmap = np.ones((24, 24), np.float32)
-    qmap[:, 12:] = 0.2
-    right = qmap.copy()
-    right[:, :12] = 0.001   # only the left half estimates (almost) everywhere
+    """The pass reads each pixel's rate from the map (crop-local, row-major):
+    with q = 1 on one half and 0.2 on the other, and then the mirror map, a
+    half's chain work drops ~5x when its rate does (tested at > 2.5x: each half
+    holds ~10^3 estimates); a map of ones gives the image of chain_rate = 1 bit
+    for bit (q = 1 draws no variate); bad maps are refused."""
+    xml = (scenes_dir / "sphere_glass.xml").read_text()
+    for crop in ("", '<integer name="crop_offset_x" value="4"/><integer name="crop_offset_y" value="2"/>'
+                     '<integer name="crop_width" value="20"/><integer name="crop_height" value="18"/>'):
+        sc = mpg.load_string(xml.replace('<rfilter', crop + '<rfilter', 1) if crop else xml,
+                             base_dir=str(scenes_dir), res="24")
+        core = sc.core
+        h, w = int(sc.desc.camera.crop[3]), int(sc.desc.camera.crop[2])
+        integ = _core.make_integrator(core, "sms_star", {})
 
-    def run(m, costs=False, seed=5):
-        job = _core.RenderJob(core, integ, 8, seed, 0, 0, chain_rate_map=m, record_costs=costs)
-        while not job.wait(0.05):
-            pass
-        return job.result()
+        def run(m, costs=False, seed=5):
+            job = _core.RenderJob(core, integ, 16, seed, 0, 0, chain_rate_map=m, record_costs=costs)
+            while not job.wait(0.05):
+                pass
+            return job.result()
 
-    full = run(None)
-    ones = run(np.ones((24, 24), np.float32))
-    assert np.array_equal(full["sum"], ones["sum"]) and "chain_m2" not in full
-    half = run(qmap, costs=True)
-    assert half["stats"]["chain_skipped"] > 0
-    assert half["chain_m2"].shape == (24, 24) and np.all(half["chain_m2"] >= 0)
-    assert np.all(half["pixel_ns"] >= half["chain_ns"]) and np.all(half["chain_ns"] >= 0)
-    # chain time lands where the estimates run: the left half (q = 1) against
-    # the right (q = 0.2) of the same symmetric-ish scene, summed over many pixels
-    lft, rgt = half["chain_ns"][:, :12].sum(), half["chain_ns"][:, 12:].sum()
-    assert lft > 0 and rgt > 0
-    for bad, msg in ((np.ones((24, 23), np.float32), "shape"), (np.zeros((24, 24), np.float32), "values"),
-                     (np.full((24, 24), np.nan, np.float32), "values")):
-        with pytest.raises(ValueError, match=msg):
-            run(bad)
+        full = run(None)
+        ones = run(np.ones((h, w), np.float32))
+        assert np.array_equal(full["sum"], ones["sum"]) and "chain_m2" not in full
+        a = np.ones((h, w), np.float32)
+        a[:, w // 2:] = 0.2
+        b = a[:, ::-1].copy()
+        ra, rb = run(a, costs=True), run(b, costs=True)
+        for r in (ra, rb):
+            assert r["chain_m2"].shape == (h, w) and np.all(r["chain_m2"] >= 0)
+            assert np.all(r["walk_steps"] >= 0) and np.all(r["rays"] >= 1)
+            assert r["stats"]["chain_skipped"] > 0
+        L, R = np.s_[:, : w // 2], np.s_[:, w - w // 2:]
+        assert ra["chain_steps"][L].sum() > 2.5 * rb["chain_steps"][L].sum()
+        assert rb["chain_steps"][R].sum() > 2.5 * ra["chain_steps"][R].sum()
+        for bad, msg in ((np.ones((h, w - 1), np.float32), "shape"), (np.zeros((h, w), np.float32), "values"),
+                         (np.full((h, w), np.nan, np.float32), "values")):
+            with pytest.raises(ValueError, match=msg):
+                run(bad)
+
+
+def test_mpg_with_learned_rates_is_deterministic(scenes_dir):
+    """The rates are learned from counted costs, not timed ones: the same seed
+    and spp give the same image on 1 and 2 threads."""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
+    a = mpg.render(sc, integrator="mpg", spp=24, seed=3, threads=1, progress=False)
+    b = mpg.render(sc, integrator="mpg", spp=24, seed=3, threads=2, progress=False)
+    assert a.stats["chain_rate_mode"] == "per-pixel"
+    assert np.array_equal(a.rgb, b.rgb)
 
 
 def test_an_arbitrary_rate_map_keeps_the_image_unbiased(scenes_dir):
@@ -158,6 +178,7 @@ def test_bad_chain_rate_settings_are_clear_errors(scenes_dir):
                         ({"type": "mpg", "chain_rate_train": "x"}, "chain_rate_train"),
                         ({"type": "mpg", "chain_rate": "sometimes"}, "chain_rate"),
                         ({"type": "mpg", "chain_rate_objective": "mape"}, "chain_rate_objective"),
-                        ({"type": "sms_star", "chain_rate": "auto"}, "chain_rate")):   # learned rates need training
+                        ({"type": "sms_star", "chain_rate": "auto"}, "chain_rate"),   # learned rates need training
+                        ({"type": "mpg", "chain_rate": "auto", "guide": None}, "chain_rate")):
         with pytest.raises(mpg.RenderError, match=msg):
             mpg.render(sc, integrator=params, spp=4, seed=1, progress=False)

@@ -96,3 +96,23 @@ def test_integrator_parameters_on_the_command_line(tmp_path):
     assert s["integrator"] == "sms" and s["integrator_params"]["tau"] == "TT"
     r = run(["--integrator", "sms", "-P", "tau=XY", "--spp", "1", "-o", str(tmp_path / "d.exr"), *SMALL])
     assert r.returncode == 1 and "tau" in r.stderr
+
+
+def test_mpg_summary_and_chain_rate_map(tmp_path, scenes_dir):
+    """mpg-render names what mpg learned and writes its per-pixel chain rates as
+    a grey PNG (log2 scale: 1/32 black, 1 white); without learned rates it says
+    so instead of writing a misleading picture."""
+    from PIL import Image as PILImage
+
+    png = tmp_path / "q.png"
+    scene = str(scenes_dir / "sphere_glass.xml")
+    r = run([scene, "-D", "res=16", "--integrator", "mpg", "--spp", "24", "-o", str(tmp_path / "m.exr"),
+             "--chain-rate-map", str(png)])
+    assert r.returncode == 0, r.stderr
+    assert "mpg trained" in r.stderr and "chain rates per pixel" in r.stderr
+    g = np.asarray(PILImage.open(png))
+    assert g.shape == (16, 16, 3) and len(np.unique(g)) > 1   # the rates differ across the image
+    png2 = tmp_path / "q2.png"
+    r = run([scene, "-D", "res=16", "--integrator", "path", "--spp", "2", "-o", str(tmp_path / "p.exr"),
+             "--chain-rate-map", str(png2)])
+    assert r.returncode == 0 and "no learned chain rates" in r.stderr and not png2.exists()

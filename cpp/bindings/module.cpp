@@ -149,13 +149,15 @@ py::dict pass_to_dict(PassResult& r) {
   out["cancelled"] = r.cancelled;
   if (!r.chain_m2.empty()) {
     std::vector<ssize_t> shape2 = {r.height, r.width};
-    DArray m2(shape2), cns(shape2), pns(shape2);
+    DArray m2(shape2), steps(shape2), walks(shape2), rays(shape2);
     std::copy(r.chain_m2.begin(), r.chain_m2.end(), m2.mutable_data());
-    std::copy(r.chain_ns.begin(), r.chain_ns.end(), cns.mutable_data());
-    std::copy(r.pixel_ns.begin(), r.pixel_ns.end(), pns.mutable_data());
+    std::copy(r.chain_steps.begin(), r.chain_steps.end(), steps.mutable_data());
+    std::copy(r.walk_steps.begin(), r.walk_steps.end(), walks.mutable_data());
+    std::copy(r.rays.begin(), r.rays.end(), rays.mutable_data());
     out["chain_m2"] = m2;
-    out["chain_ns"] = cns;
-    out["pixel_ns"] = pns;
+    out["chain_steps"] = steps;
+    out["walk_steps"] = walks;
+    out["rays"] = rays;
   }
   auto st = r.stats.to_map();
   for (size_t i = 1; i < r.stats.walk_failures.size(); ++i)

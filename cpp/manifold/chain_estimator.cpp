@@ -158,10 +158,14 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     chain.nL = lp.n;
     WalkFailure why = WalkFailure::None;
     if (!walk_.trace_seed(xD, nD, to_d(dir), tau, chain, why, &offsets)) {
+      st.walk_steps += uint64_t(n);
       st.walk_failures[size_t(why)]++;
       return false;
     }
     const WalkResult r = walk_.solve(chain);
+    // A trial's work in vertex steps (a traced or reprojected vertex: a ray and
+    // a chart), deterministic unlike chain_ns: mpg.chain_rates' cost model.
+    st.walk_steps += uint64_t(n) * uint64_t(1 + r.iterations);
     if (!r.converged) {
       st.walk_failures[size_t(r.failure)]++;
       return false;
@@ -180,6 +184,7 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
   chain.nL = lp.n;
   if (p_.mode == ChainParams::Mode::Sms) {
     tau = p_.tau;
+    st.walk_steps += uint64_t(n);  // the traced seed (counted whether it fails or not)
     if (!walk_.trace_seed(xD, nD, dir, tau, chain, why, &offsets)) {
       st.walk_failures[size_t(why)]++;
       return false;
@@ -190,6 +195,7 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     chain.nD = nD;
     chain.v.clear();
     tau.clear();
+    st.walk_steps += uint64_t(n);  // the traced seed (counted whether it fails or not)
     DVec3 o = xD, on = nD, d = glm::normalize(dir);
     for (int i = 0; i < n; ++i) {
       const Vec3 of = offset_ray_origin(to_f(o), to_f(on), to_f(d));
@@ -222,6 +228,7 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     }
   }
   const WalkResult r = walk_.solve(chain);
+  st.walk_steps += uint64_t(n) * uint64_t(r.iterations);
   if (!r.converged) {
     st.walk_failures[size_t(r.failure)]++;
     return false;
@@ -488,6 +495,7 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
   const int nmax = max_len(depth, max_depth);
   if (nmax < 1) return Color(0.f);
   const auto t0 = Clock::now();
+  const uint64_t steps0 = st.walk_steps;
   st.chain_estimates++;
   Color result(0.f);
   LightPoint lp;
@@ -600,6 +608,8 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     }
   } while (false);
   st.chain_ns += ns_since(t0);
+  // + 1: an estimate's own work (light sample, leaf query, G, the light's shadow ray)
+  st.chain_steps += st.walk_steps - steps0 + 1;
   return result;
 }
 

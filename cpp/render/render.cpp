@@ -50,8 +50,9 @@ void RenderJob::run() {
   const bool costs = cfg_.record_costs;
   if (costs) {
     result_.chain_m2.assign(size_t(W) * H, 0.0);
-    result_.chain_ns.assign(size_t(W) * H, 0.0);
-    result_.pixel_ns.assign(size_t(W) * H, 0.0);
+    result_.chain_steps.assign(size_t(W) * H, 0.0);
+    result_.walk_steps.assign(size_t(W) * H, 0.0);
+    result_.rays.assign(size_t(W) * H, 0.0);
   }
   const std::vector<float>* qmap = cfg_.chain_rate_map.get();
   if (qmap && qmap->size() != size_t(W) * H) qmap = nullptr;  // checked by the bindings
@@ -79,8 +80,7 @@ void RenderJob::run() {
           double s[3] = {0, 0, 0}, s2[3] = {0, 0, 0};
           st.pixel_chain_rate = qmap ? (*qmap)[size_t(y) * W + x] : 0.f;
           st.pixel_chain_m2 = 0.0;
-          const uint64_t chain_ns0 = st.chain_ns;
-          const auto pixel_t0 = costs ? std::chrono::steady_clock::now() : std::chrono::steady_clock::time_point();
+          const uint64_t steps0 = st.chain_steps, walk0 = st.walk_steps, rays0 = st.rays + st.shadow_rays + st.camera_rays;
           for (int k = 0; k < cfg_.spp; ++k) {
             // A cancelled pass is dropped whole (never splatted), so stopping
             // mid-tile is safe; checking per sample bounds the overshoot of a
@@ -117,9 +117,9 @@ void RenderJob::run() {
           if (costs) {
             const size_t j = size_t(y) * W + x;
             result_.chain_m2[j] = st.pixel_chain_m2;
-            result_.chain_ns[j] = double(st.chain_ns - chain_ns0);
-            result_.pixel_ns[j] =
-                std::chrono::duration<double, std::nano>(std::chrono::steady_clock::now() - pixel_t0).count();
+            result_.chain_steps[j] = double(st.chain_steps - steps0);
+            result_.walk_steps[j] = double(st.walk_steps - walk0);
+            result_.rays[j] = double(st.rays + st.shadow_rays + st.camera_rays - rays0);
           }
         }
       }

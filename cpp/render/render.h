@@ -19,9 +19,11 @@ struct PassResult {
   int width = 0, height = 0, spp = 0;
   std::vector<double> sum, sum_sq;  // height x width x 3: sums of sample values and squares
   // With PassConfig::record_costs, per pixel (height x width): the sum over its
-  // samples of the chain second moment (Stats::pixel_chain_m2), the nanoseconds
-  // spent in chain estimates, and in the whole pixel.
-  std::vector<double> chain_m2, chain_ns, pixel_ns;
+  // samples of the chain second moment (Stats::pixel_chain_m2), the work of its
+  // chain estimates (Stats::chain_steps), all its walk work (Stats::walk_steps:
+  // the path tracer's MIS rounds too) and its rays (camera, extension, shadow). Counts, not times: the rates learned from them, and so the
+  // image, are the same on every run.
+  std::vector<double> chain_m2, chain_steps, walk_steps, rays;
   Stats stats;
   double seconds = 0.0;
   bool cancelled = false;

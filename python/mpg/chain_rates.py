@@ -10,7 +10,7 @@ tracer finds the same light well it should be small.
 
 For the image's MSE after a fixed time, with per pixel p
   V_p(q_p) = V1_p + (1/q_p - 1) M_p   (variance of one sample; M_p = E[sum X_j^2])
-  C_p(q_p) = c0_p + q_p c1_p          (time of one sample; c1_p = chain time at q = 1)
+  C_p(q_p) = c0_p + q_p c1_p          (cost of one sample; c1_p = chain cost at q = 1)
 the error is mean(V) / N with N = T / mean(C) samples per pixel, so we minimise
 F(q) = mean_p V_p(q_p) * mean_p C_p(q_p). Setting dF/dq_p = 0:
   q_p = sqrt(M_p * mean(C) / (c1_p * mean(V)))                       (1)
@@ -31,6 +31,16 @@ from __future__ import annotations
 import numpy as np
 
 
+# Time of one manifold-walk vertex step (a traced or reprojected vertex) in units
+# of one path-tracer ray, measured on the evaluation scenes at 128^2 (ns per
+# chain step / ns per ray of `path`: sphere 3.5, double_slabs 4.3,
+# chain_length_4 3.9, emitter_size_003 4.1, visibility_4 3.9). The costs are
+# counted, not timed, so that the learned rates -- and the image -- are the same
+# on every run and thread count; a wrong factor only moves the rates off their
+# optimum by its square root.
+STEP_COST = 4.0
+
+
 class CostAccumulator:
     """Per-pixel sums over training passes (crop height x width)."""
 
@@ -39,8 +49,9 @@ class CostAccumulator:
         self.sum = np.zeros(shape + (3,))
         self.sum_sq = np.zeros(shape + (3,))
         self.chain_m2 = np.zeros(shape)
-        self.chain_ns = np.zeros(shape)
-        self.pixel_ns = np.zeros(shape)
+        self.chain_steps = np.zeros(shape)   # walk steps (+1 per estimate) inside chain estimates
+        self.walk_steps = np.zeros(shape)    # all walk steps (the path tracer's MIS rounds too)
+        self.rays = np.zeros(shape)
         self.rate_sum = np.zeros(shape)   # sum over passes of q * spp (the rate each pass ran at)
 
     def add(self, result: dict, spp: int, q: float | np.ndarray) -> None:
@@ -48,8 +59,9 @@ class CostAccumulator:
         self.sum += result["sum"]
         self.sum_sq += result["sum_sq"]
         self.chain_m2 += result["chain_m2"]
-        self.chain_ns += result["chain_ns"]
-        self.pixel_ns += result["pixel_ns"]
+        self.chain_steps += result["chain_steps"]
+        self.walk_steps += result["walk_steps"]
+        self.rays += result["rays"]
         self.rate_sum += np.broadcast_to(np.asarray(q, dtype=float), self.rate_sum.shape) * spp
 
 
@@ -70,7 +82,7 @@ def _box_blur(a: np.ndarray, r: int) -> np.ndarray:
 
 
 def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
-                iterations: int = 50, objective: str = "mse") -> tuple[np.ndarray, dict]:
+                iterations: int = 50, objective: str = "relmse") -> tuple[np.ndarray, dict]:
     """Per-pixel rates by Eq. (1) of the module docstring, and a summary.
 
     M_p and c1_p are averaged over a (2 radius + 1)^2 window first: a pixel of a
@@ -82,14 +94,18 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
         info.update(chain_rate_mean=1.0, chain_rate_fraction_one=1.0, chain_rate_learned=False)
         return q, info
     n = float(acc.n)
-    for a in (acc.sum, acc.sum_sq, acc.chain_m2, acc.chain_ns, acc.pixel_ns):
-        np.nan_to_num(a, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
-    q_t = acc.rate_sum / n                             # the training passes' mean rate per pixel
-    m2 = acc.chain_m2 / n                              # E[sum_j X_j^2] per sample (unbiased)
-    c1 = acc.chain_ns / (np.maximum(q_t, 1e-3) * n)    # chain time per sample at q = 1
-    c0 = np.maximum(acc.pixel_ns - acc.chain_ns, 0.0) / n
-    mean = acc.sum / n
-    var_t = np.maximum(acc.sum_sq / n - mean * mean, 0.0).mean(axis=2) * (n / (n - 1))
+
+    def finite(a):   # a rejected sample's NaN/Inf square must not poison the rates
+        return np.nan_to_num(np.asarray(a, dtype=float), nan=0.0, posinf=0.0, neginf=0.0)
+
+    q_t = acc.rate_sum / n                                # the training passes' mean rate per pixel
+    m2 = finite(acc.chain_m2) / n                         # E[sum_j X_j^2] per sample (unbiased)
+    steps = finite(acc.chain_steps)
+    c1 = STEP_COST * steps / (np.maximum(q_t, 1e-3) * n)  # chain cost per sample at q = 1 (ray units)
+    c0 = (finite(acc.rays) + STEP_COST * np.maximum(finite(acc.walk_steps) - steps, 0.0)) / n
+    mean = finite(acc.sum) / n
+    sum_sq = finite(acc.sum_sq)
+    var_t = np.maximum(sum_sq / n - mean * mean, 0.0).mean(axis=2) * (n / (n - 1))
     # objective "relmse": each pixel's variance weighted by 1 / (I^2 + 0.01), I
     # its (blurred) training mean, as metrics.relmse weighs the error
     if objective == "relmse":

@@ -9,6 +9,8 @@ import signal
 import sys
 from collections.abc import Sequence
 
+import numpy as np
+
 from mpg.errors import MPGError
 
 
@@ -44,6 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-preview", action="store_true", help="do not write a PNG")
     p.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
     p.add_argument("--stats", help="write the render statistics as JSON")
+    p.add_argument("--chain-rate-map", metavar="PNG",
+                   help="mpg: write the learned per-pixel chain rates as a grey PNG "
+                        "(log2 scale, black 1/32 .. white 1)")
     p.add_argument("--substitute-missing-textures", action="store_true",
                    help="replace missing texture files by neutral stand-ins (with a warning)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
@@ -114,6 +119,16 @@ def _run(args) -> int:
     img.write_exr(out)
     if preview:
         img.write_png(preview, exposure=args.exposure)
+    if args.chain_rate_map:
+        if img.chain_rate_map is None:
+            print("mpg-render: warning: no learned chain rates to write (not mpg, no chain work, "
+                  "a fixed chain_rate or too little training)", file=sys.stderr)
+        else:
+            from mpg.image import write_png
+            g = np.clip((np.log2(np.maximum(img.chain_rate_map, 1e-3)) + 5.0) / 5.0, 0.0, 1.0)
+            # write_png applies the sRGB curve: undo it so that the grey levels are g
+            lin = np.where(g <= 0.04045, g / 12.92, ((g + 0.055) / 1.055) ** 2.4)
+            write_png(args.chain_rate_map, np.repeat(lin[..., None], 3, axis=2))
     if args.stats:
         stats = dict(img.stats)
         stats["scene"] = os.path.abspath(path)
@@ -137,7 +152,7 @@ def _run(args) -> int:
             rates = (f"chain rates per pixel: mean {st['chain_rate_mean']:.3f}, "
                      f"{100 * st['chain_rate_fraction_one']:.0f} % at 1"
                      if st.get("chain_rate_mode") == "per-pixel"
-                     else f"chain rate {st['integrator_params'].get('chain_rate')}")
+                     else f"chain rate {st['chain_rate_mean']:g}")
             print(f"mpg-render: mpg trained {st['training_iterations']} iterations "
                   f"({st['spp_training']} spp, {st['seconds_training']:.1f} s), "
                   f"{st['guide_leaves']} leaves; {rates}", file=sys.stderr)

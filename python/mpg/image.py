@@ -19,12 +19,14 @@ class Image:
     variance: float32 (H, W, 3), the estimated variance of that mean (sample variance / spp).
     spp:      samples per pixel that went into it.
     stats:    the render statistics (see docs/design-notes.md).
+    chain_rate_map: float32 (H, W), mpg's learned per-pixel chain rates, or None.
     """
 
     rgb: np.ndarray
     variance: np.ndarray
     spp: int
     stats: dict[str, Any] = field(default_factory=dict)
+    chain_rate_map: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -103,6 +103,9 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
               "guide_fraction", "training_fraction", "stree_c", "stree_epsilon", "chain_rate",
               "chain_rate_min", "chain_rate_train"):
         if k == "chain_rate" and name == "mpg" and str(core_params.get(k)).strip().lower() == "auto":
+            if "guide" in core_params:
+                raise RenderError("chain_rate 'auto' is learned by mpg's training loop; "
+                                  "with a given guide, chain_rate must be a number")
             core_params[k] = "auto"   # mpg: rates learned per pixel in training (mpg.chain_rates)
             continue
         if k in core_params:
@@ -282,8 +285,11 @@ def render(
                     # (a sample can run thousands of Bernoulli trials).
                     k = max(1, min(k, int(min(0.5 * left, time / 8) / pass_seconds_per_spp)))
             pass_t0 = _time.monotonic()
-            job = _core.RenderJob(core_scene, integ, k, seed, passes, threads or 0,
-                                  chain_rate_map=chain_rate_map)
+            try:
+                job = _core.RenderJob(core_scene, integ, k, seed, passes, threads or 0,
+                                      chain_rate_map=chain_rate_map)
+            except ValueError as e:   # a bad chain_rate_map (shape, values)
+                raise RenderError(str(e)) from None
             cancelled_by_time = False
             try:
                 while not job.wait(0.05):
