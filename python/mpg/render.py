@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+import signal
 import sys
+import threading
 import time as _time
 from dataclasses import dataclass, field
 from typing import Any
@@ -265,8 +267,22 @@ def render(
     sched = pass_schedule()
     pass_seconds_per_spp = None
     seconds_dropped = 0.0
+    # Ctrl-C (and SIGTERM where a caller such as mpg-render maps it to an
+    # interrupt) sets a flag the loop checks, instead of raising wherever it
+    # lands: a KeyboardInterrupt between two passes (creating a job, adding a
+    # pass) escaped the loop and lost the whole image.
+    stop = threading.Event()
+    saved = []
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            cur = signal.getsignal(sig)
+            if sig == signal.SIGINT or cur not in (signal.SIG_DFL, signal.SIG_IGN, None):
+                saved.append((sig, signal.signal(sig, lambda signum, frame: stop.set())))
     try:
         while spp is None or done < spp:
+            if stop.is_set():
+                interrupted = True
+                break
             k = next(sched)
             if spp is not None:
                 k = min(k, spp - done)
@@ -293,6 +309,8 @@ def render(
             cancelled_by_time = False
             try:
                 while not job.wait(0.05):
+                    if stop.is_set():
+                        raise KeyboardInterrupt
                     el = _time.monotonic() - t0
                     # The time limit cancels a pass once one has finished: a
                     # budget shorter than one pass still gives a 1-spp image,
@@ -332,6 +350,8 @@ def render(
             el = _time.monotonic() - t0
             bar.update(done / spp if spp else el / time, done, spp, el)
     finally:
+        for sig, old in saved:
+            signal.signal(sig, old)
         bar.close()
     elapsed = _time.monotonic() - t0
     if done > 0:
