@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import pathlib
 import sys
 
@@ -23,8 +22,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 def main() -> int:
     import mpg
-    from mpg.image import to_srgb8
-    from PIL import Image
+    from mpg.chain_rates import rate_map_grey8
+    from mpg.image import to_srgb8, write_png8
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--scenes", nargs="+", default=["sphere", "double_slabs"])
@@ -40,15 +39,12 @@ def main() -> int:
         if q is None:
             print(f"{name}: no learned rates ({img.stats.get('chain_rate_mode')})", file=sys.stderr)
             q = np.ones(img.rgb.shape[:2], np.float32)
-        g = np.clip((np.log2(np.maximum(q, 1e-3)) + 5.0) / 5.0, 0.0, 1.0)
-        gray = np.repeat(np.round(g * 255.0).astype(np.uint8)[..., None], 3, axis=2)
-        rows.append(np.concatenate([to_srgb8(img.rgb), gray], axis=1))
+        rows.append(np.concatenate([to_srgb8(img.rgb), rate_map_grey8(q)], axis=1))
         st = img.stats
         summary[name] = {k: st.get(k) for k in ("spp", "spp_training", "chain_rate_mode", "chain_rate_mean",
                                                 "chain_rate_fraction_one", "chain_rate_fraction_min")}
         print(name, summary[name])
-    os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    Image.fromarray(np.concatenate(rows, axis=0)).save(args.out)
+    write_png8(args.out, np.concatenate(rows, axis=0))
     res = ROOT / "bench" / "results"
     res.mkdir(parents=True, exist_ok=True)
     (res / "chain_rate_figure.json").write_text(json.dumps({"command": " ".join(sys.argv), **summary}, indent=2))

@@ -157,15 +157,16 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     chain.xL = lp.p;
     chain.nL = lp.n;
     WalkFailure why = WalkFailure::None;
+    // A trial's work in vertex steps (a traced or reprojected vertex: a ray and
+    // a chart), deterministic unlike chain_ns: mpg.chain_rates' cost model. The
+    // traced seed counts whether it fails or not, then each Newton iteration.
+    st.walk_steps += uint64_t(n);
     if (!walk_.trace_seed(xD, nD, to_d(dir), tau, chain, why, &offsets)) {
-      st.walk_steps += uint64_t(n);
       st.walk_failures[size_t(why)]++;
       return false;
     }
     const WalkResult r = walk_.solve(chain);
-    // A trial's work in vertex steps (a traced or reprojected vertex: a ray and
-    // a chart), deterministic unlike chain_ns: mpg.chain_rates' cost model.
-    st.walk_steps += uint64_t(n) * uint64_t(1 + r.iterations);
+    st.walk_steps += uint64_t(n) * uint64_t(r.iterations);
     if (!r.converged) {
       st.walk_failures[size_t(r.failure)]++;
       return false;
@@ -184,7 +185,7 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
   chain.nL = lp.n;
   if (p_.mode == ChainParams::Mode::Sms) {
     tau = p_.tau;
-    st.walk_steps += uint64_t(n);  // the traced seed (counted whether it fails or not)
+    st.walk_steps += uint64_t(n);  // the traced seed
     if (!walk_.trace_seed(xD, nD, dir, tau, chain, why, &offsets)) {
       st.walk_failures[size_t(why)]++;
       return false;
@@ -195,7 +196,7 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     chain.nD = nD;
     chain.v.clear();
     tau.clear();
-    st.walk_steps += uint64_t(n);  // the traced seed (counted whether it fails or not)
+    st.walk_steps += uint64_t(n);  // the traced seed
     DVec3 o = xD, on = nD, d = glm::normalize(dir);
     for (int i = 0; i < n; ++i) {
       const Vec3 of = offset_ray_origin(to_f(o), to_f(on), to_f(d));

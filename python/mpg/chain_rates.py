@@ -32,9 +32,10 @@ import numpy as np
 
 
 # Time of one manifold-walk vertex step (a traced or reprojected vertex) in units
-# of one path-tracer ray, measured on the evaluation scenes at 128^2 (ns per
-# chain step / ns per ray of `path`: sphere 3.5, double_slabs 4.3,
-# chain_length_4 3.9, emitter_size_003 4.1, visibility_4 3.9). The costs are
+# of one path-tracer ray, measured on the evaluation scenes at 128^2 by
+# bench/step_cost.py (ns per chain step of sms_star / ns per ray of `path`, one
+# thread: sphere 3.2, double_slabs 4.7, chain_length_4 4.2, emitter_size_003
+# 4.7, visibility_4 4.7). The costs are
 # counted, not timed, so that the learned rates -- and the image -- are the same
 # on every run and thread count; a wrong factor only moves the rates off their
 # optimum by its square root.
@@ -90,9 +91,8 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
     shape = acc.chain_m2.shape
     info: dict = {"chain_rate_min_allowed": q_min}
     if acc.n < 2:
-        q = np.ones(shape, dtype=np.float32)
-        info.update(chain_rate_mean=1.0, chain_rate_fraction_one=1.0, chain_rate_learned=False)
-        return q, info
+        info["chain_rate_learned"] = False
+        return np.ones(shape, dtype=np.float32), info
     n = float(acc.n)
 
     def finite(a):   # a rejected sample's NaN/Inf square must not poison the rates
@@ -135,11 +135,18 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
             q = q_new
     # pixels without chain work keep 1: the rate is never used there
     q = np.where(has & np.isfinite(q), q, 1.0)
-    chain_px = has
     info.update(
         chain_rate_learned=True,
-        chain_rate_mean=float(np.mean(q[chain_px])) if np.any(chain_px) else 1.0,
-        chain_rate_fraction_one=float(np.mean(q[chain_px] >= 1.0)) if np.any(chain_px) else 1.0,
-        chain_rate_fraction_min=float(np.mean(q[chain_px] <= q_min)) if np.any(chain_px) else 0.0,
+        chain_rate_mean=float(np.mean(q[has])) if np.any(has) else 1.0,
+        chain_rate_fraction_one=float(np.mean(q[has] >= 1.0)) if np.any(has) else 1.0,
+        chain_rate_fraction_min=float(np.mean(q[has] <= q_min)) if np.any(has) else 0.0,
     )
     return q.astype(np.float32), info
+
+
+def rate_map_grey8(q: np.ndarray, q_low: float = 1.0 / 32) -> np.ndarray:
+    """A rate map as 8-bit grey RGB (H, W, 3): log2 scale from q_low (black) to
+    1 (white), for mpg-render --chain-rate-map and the docs figure."""
+    lo = np.log2(q_low)
+    g = np.clip((np.log2(np.maximum(np.asarray(q, dtype=float), 1e-3)) - lo) / -lo, 0.0, 1.0)
+    return np.repeat(np.round(g * 255.0).astype(np.uint8)[..., None], 3, axis=2)

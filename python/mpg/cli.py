@@ -9,8 +9,6 @@ import signal
 import sys
 from collections.abc import Sequence
 
-import numpy as np
-
 from mpg.errors import MPGError
 
 
@@ -124,11 +122,9 @@ def _run(args) -> int:
             print("mpg-render: warning: no learned chain rates to write (not mpg, no chain work, "
                   "a fixed chain_rate or too little training)", file=sys.stderr)
         else:
-            from mpg.image import write_png
-            g = np.clip((np.log2(np.maximum(img.chain_rate_map, 1e-3)) + 5.0) / 5.0, 0.0, 1.0)
-            # write_png applies the sRGB curve: undo it so that the grey levels are g
-            lin = np.where(g <= 0.04045, g / 12.92, ((g + 0.055) / 1.055) ** 2.4)
-            write_png(args.chain_rate_map, np.repeat(lin[..., None], 3, axis=2))
+            from mpg.chain_rates import rate_map_grey8
+            from mpg.image import write_png8
+            write_png8(args.chain_rate_map, rate_map_grey8(img.chain_rate_map))
     if args.stats:
         stats = dict(img.stats)
         stats["scene"] = os.path.abspath(path)

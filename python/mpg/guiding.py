@@ -42,9 +42,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     objective = str(params.pop("chain_rate_objective", "relmse"))
     if objective not in ("mse", "relmse"):
         raise RenderError(f"chain_rate_objective must be 'mse' or 'relmse', got '{objective}'")
-    auto = isinstance(rate, str)
-    if auto and rate != "auto":
-        raise RenderError(f"chain_rate must be a number in [0.001, 1] or 'auto', got '{rate}'")
+    auto = rate == "auto"   # render() turned any other value into a float or an error
     for nm, v in (("chain_rate_min", q_min), ("chain_rate_train", q_train)):
         if not 1e-3 <= v <= 1.0:
             raise RenderError(f"{nm} must be in [0.001, 1], got {v}")

@@ -101,10 +101,15 @@ def to_srgb8(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
 
 
 def write_png(path: str, rgb: np.ndarray, exposure: float = 0.0) -> None:
+    write_png8(path, to_srgb8(rgb, exposure))
+
+
+def write_png8(path: str, rgb8: np.ndarray) -> None:
+    """An 8-bit RGB array (H, W, 3) as it is, to a PNG file."""
     from PIL import Image as PILImage
 
     _ensure_dir(path)
     try:
-        PILImage.fromarray(to_srgb8(rgb, exposure), mode="RGB").save(path)
+        PILImage.fromarray(rgb8, mode="RGB").save(path)
     except OSError as e:
         raise MPGError(f"{path}: could not write the PNG file: {e}") from None
