@@ -4,7 +4,8 @@ evaluation scenes next to the chain-rate maps it learned in training.
     python bench/chain_rate_figure.py [--scenes sphere double_slabs] [--time 30] [--seed 1]
 
 Each row: the image (sRGB, clipped) and the map on a log2 scale from 1/32
-(black) to 1 (white; pixels without chain work are 1). Writes
+(black) to 1 (white; pixels without chain work are 1), blue where the rate is
+0 (the path tracer alone). Writes
 docs/images/chain-rates.png and bench/results/chain_rate_figure.json (spp and
 rate summary per scene)."""
 
@@ -42,7 +43,8 @@ def main() -> int:
         rows.append(np.concatenate([to_srgb8(img.rgb), rate_map_grey8(q)], axis=1))
         st = img.stats
         summary[name] = {k: st.get(k) for k in ("spp", "spp_training", "chain_rate_mode", "chain_rate_mean",
-                                                "chain_rate_fraction_one", "chain_rate_fraction_min")}
+                                                "chain_rate_fraction_one", "chain_rate_fraction_min",
+                                                "chain_rate_fraction_pt", "chain_handoff")}
         print(name, summary[name])
     write_png8(args.out, np.concatenate(rows, axis=0))
     res = ROOT / "bench" / "results"

@@ -158,6 +158,14 @@ py::dict pass_to_dict(PassResult& r) {
     out["chain_steps"] = steps;
     out["walk_steps"] = walks;
     out["rays"] = rays;
+    DArray asum(shape), asq(shape);
+    std::copy(r.alt_sum.begin(), r.alt_sum.end(), asum.mutable_data());
+    std::copy(r.alt_sum_sq.begin(), r.alt_sum_sq.end(), asq.mutable_data());
+    out["alt_sum"] = asum;
+    out["alt_sum_sq"] = asq;
+    DArray hits(shape2);
+    std::copy(r.alt_hits.begin(), r.alt_hits.end(), hits.mutable_data());
+    out["alt_hits"] = hits;
   }
   auto st = r.stats.to_map();
   for (size_t i = 1; i < r.stats.walk_failures.size(); ++i)
@@ -576,6 +584,11 @@ PYBIND11_MODULE(_core, m) {
         auto* p = dynamic_cast<const PathIntegrator*>(&i);
         return p != nullptr && p->chains_active();
       })
+      .def_property_readonly("chains_delta_lights", [](const Integrator& i) {
+        // a point or spot chain light: rate 0 would lose its light (ChainEstimator::has_delta_lights)
+        auto* p = dynamic_cast<const PathIntegrator*>(&i);
+        return p != nullptr && p->chains() && p->chains()->active() && p->chains()->has_delta_lights();
+      })
       .def("trace_photons", [](const Integrator& i, uint64_t count, uint64_t seed) {
         // Photon initialisation of MPG (supplemental Sec. 2): sub-path samples from photons.
         auto buf = std::make_shared<SubpathBuffer>();
@@ -611,8 +624,17 @@ PYBIND11_MODULE(_core, m) {
           if (a.ndim() != 2 || a.shape(0) != c.crop_h || a.shape(1) != c.crop_w)
             throw std::invalid_argument("chain_rate_map must have shape (crop height, crop width)");
           auto m = std::make_shared<std::vector<float>>(a.data(), a.data() + a.size());
-          for (float q : *m)
-            if (!(q >= 1e-3f && q <= 1.f)) throw std::invalid_argument("chain_rate_map values must be in [0.001, 1]");
+          bool zero = false;
+          for (float q : *m) {
+            if (!(q == 0.f || (q >= 1e-3f && q <= 1.f)))
+              throw std::invalid_argument("chain_rate_map values must be 0 or in [0.001, 1]");
+            zero = zero || q == 0.f;
+          }
+          auto* pi = dynamic_cast<const PathIntegrator*>(integ.get());
+          if (zero && pi && pi->chains() && pi->chains()->active() && pi->chains()->has_delta_lights())
+            throw std::invalid_argument(
+                "chain_rate_map values of 0 hand a pixel's chain light to the path tracer, which cannot "
+                "reach a point or spot light through specular chains; this scene has one");
           cfg.chain_rate_map = std::move(m);
         }
         auto job = std::make_shared<RenderJob>(scene, integ, cfg);

@@ -40,13 +40,16 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     const Shape& shape = scene.shapes[size_t(si.shape)];
     if (shape.emitter >= 0 && show) {
       const Color Le = scene.emitted(si);
-      if (chains_ && chain_ok && !tau.empty() && chains_->owns(sep_depth, max_depth, tau) &&
-          chains_->active_for(sep_si.p, si.p)) {
+      // (rate 0: this pixel's chain light is the path tracer's alone, below)
+      if (chains_ && chain_ok && !tau.empty() && st.pixel_chain_rate != 0.f &&
+          chains_->owns(sep_depth, max_depth, tau) && chains_->active_for(sep_si.p, si.p)) {
         // A path the chain estimator also produces: this side's share of it
         // (0 when the estimator takes it whole; design.md "No double counting").
         if (!is_black(Le)) {
           const float w = chains_->pt_weight(sep_si, sep_ctx, sep_depth, max_depth, chain_si.data(), tau, si,
                                              rng, st);
+          st.sample_alt_delta += beta * Le * (1.f - w);  // the path tracer alone keeps it whole
+          st.sample_owned_hit = true;  // (w can round to 1 where the path tracer's density dominates)
           if (w > 0.f) {
             L += beta * Le * w;
             st.owned_shared++;
@@ -97,11 +100,16 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
       // depend on it, so the sum stays unbiased.
       // (q = 1 draws no variate: sms/sms_star images are unchanged.)
       // q is the pixel's rate when the pass has a map (mpg's learned rates),
-      // the estimator's otherwise.
-      const float q = st.pixel_chain_rate > 0.f ? st.pixel_chain_rate : chains_->chain_rate();
-      if (q >= 1.f || rng.next_float() < q) {
+      // the estimator's otherwise. q = 0: the pixel's chain light is the path
+      // tracer's whole (above); the same for every sample of the pixel, so
+      // each path is counted once.
+      const float q = st.pixel_chain_rate >= 0.f ? st.pixel_chain_rate : chains_->chain_rate();
+      if (q <= 0.f) {
+        st.chain_handed++;
+      } else if (q >= 1.f || rng.next_float() < q) {
         const Color X = beta * chains_->estimate(si, ctx, depth, max_depth, rng, st);
         L += X * (1.f / q);
+        st.sample_alt_delta -= X * (1.f / q);
         // (a non-finite X rejects the whole sample, render.cpp: not counted here)
         const double m2 = (double(X.x) * X.x + double(X.y) * X.y + double(X.z) * X.z) / (3.0 * double(q));
         if (std::isfinite(m2)) st.pixel_chain_m2 += m2;

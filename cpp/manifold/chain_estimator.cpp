@@ -55,6 +55,7 @@ ChainEstimator::ChainEstimator(const Scene& scene, ChainParams p)
     if (chain && em.power > 0.f && std::isfinite(em.power)) {
       chain_lights_.push_back(int(e));
       w.push_back(em.power);
+      if (em.type != Emitter::Type::Area) has_delta_lights_ = true;
     }
   }
   light_dist_.build(w);

@@ -89,6 +89,9 @@ class ChainEstimator {
   ChainEstimator(const Scene& scene, ChainParams p);
 
   bool active() const { return active_; }
+  // A point or spot light among the chain lights: the path tracer never hits
+  // it, so rate 0 (the path tracer alone) would lose its light through chains.
+  bool has_delta_lights() const { return has_delta_lights_; }
   float chain_rate() const { return p_.chain_rate; }
   // Does the estimator produce chains of type `tau` at a separator of loop depth
   // `depth` (path tracer's convention, camera hit = 0) under `max_depth`?
@@ -195,6 +198,7 @@ class ChainEstimator {
   std::vector<int> seed_shapes_;     // shapes seeds are drawn on
   DiscreteDistribution seed_dist_;   // by area
   std::vector<int> chain_lights_;    // emitters used as x_L
+  bool has_delta_lights_ = false;
   DiscreteDistribution light_dist_;  // by power
   std::vector<int> light_index_;     // emitter -> index in chain_lights_, or -1
 };

@@ -53,6 +53,9 @@ void RenderJob::run() {
     result_.chain_steps.assign(size_t(W) * H, 0.0);
     result_.walk_steps.assign(size_t(W) * H, 0.0);
     result_.rays.assign(size_t(W) * H, 0.0);
+    result_.alt_sum.assign(size_t(W) * H * 3, 0.0);
+    result_.alt_hits.assign(size_t(W) * H, 0.0);
+    result_.alt_sum_sq.assign(size_t(W) * H * 3, 0.0);
   }
   const std::vector<float>* qmap = cfg_.chain_rate_map.get();
   if (qmap && qmap->size() != size_t(W) * H) qmap = nullptr;  // checked by the bindings
@@ -77,8 +80,8 @@ void RenderJob::run() {
         for (int x = x0; x < x1; ++x) {
           const int fx = cam.crop_x + x, fy = cam.crop_y + y;
           const uint64_t pixel = uint64_t(fy) * uint64_t(cam.width) + uint64_t(fx);
-          double s[3] = {0, 0, 0}, s2[3] = {0, 0, 0};
-          st.pixel_chain_rate = qmap ? (*qmap)[size_t(y) * W + x] : 0.f;
+          double s[3] = {0, 0, 0}, s2[3] = {0, 0, 0}, a[3] = {0, 0, 0}, a2[3] = {0, 0, 0}, hits = 0;
+          st.pixel_chain_rate = qmap ? (*qmap)[size_t(y) * W + x] : -1.f;
           st.pixel_chain_m2 = 0.0;
           const uint64_t steps0 = st.chain_steps, walk0 = st.walk_steps, rays0 = st.rays + st.shadow_rays + st.camera_rays;
           for (int k = 0; k < cfg_.spp; ++k) {
@@ -94,8 +97,12 @@ void RenderJob::run() {
             float tmin, tmax;
             cam.generate_ray(Vec2(float(fx) + 0.5f + ox, float(fy) + 0.5f + oy), o, d, tmin, tmax);
             st.camera_rays++;
+            st.sample_alt_delta = Color(0.f);
+            st.sample_owned_hit = false;
             Color L = integrator_->Li(scene, o, d, tmin, tmax, rng, st);
             st.samples++;
+            const bool ok = std::isfinite(L.x) && std::isfinite(L.y) && std::isfinite(L.z) && L.x >= 0.f &&
+                            L.y >= 0.f && L.z >= 0.f;
             if (!(std::isfinite(L.x) && std::isfinite(L.y) && std::isfinite(L.z))) {
               if (std::isnan(L.x) || std::isnan(L.y) || std::isnan(L.z)) st.rejected_nan++;
               else st.rejected_inf++;
@@ -107,6 +114,17 @@ void RenderJob::run() {
             for (int c = 0; c < 3; ++c) {
               s[c] += L[c];
               s2[c] += double(L[c]) * L[c];
+            }
+            if (costs) {
+              // The path tracer alone; a rejected sample (L = 0) counts 0 here too.
+              const Color A = ok ? L + st.sample_alt_delta : Color(0.f);
+              if (ok && st.sample_owned_hit) hits += 1.0;
+              if (std::isfinite(A.x) && std::isfinite(A.y) && std::isfinite(A.z))
+                for (int c = 0; c < 3; ++c) {
+                  const double v = std::max(double(A[c]), 0.0);
+                  a[c] += v;
+                  a2[c] += v * v;
+                }
             }
           }
           const size_t i = (size_t(y) * W + x) * 3;
@@ -120,6 +138,11 @@ void RenderJob::run() {
             result_.chain_steps[j] = double(st.chain_steps - steps0);
             result_.walk_steps[j] = double(st.walk_steps - walk0);
             result_.rays[j] = double(st.rays + st.shadow_rays + st.camera_rays - rays0);
+            result_.alt_hits[j] = hits;
+            for (int c = 0; c < 3; ++c) {
+              result_.alt_sum[i + c] = a[c];
+              result_.alt_sum_sq[i + c] = a2[c];
+            }
           }
         }
       }

@@ -22,8 +22,11 @@ struct PassResult {
   // samples of the chain second moment (Stats::pixel_chain_m2), the work of its
   // chain estimates (Stats::chain_steps), all its walk work (Stats::walk_steps:
   // the path tracer's MIS rounds too) and its rays (camera, extension, shadow). Counts, not times: the rates learned from them, and so the
-  // image, are the same on every run.
-  std::vector<double> chain_m2, chain_steps, walk_steps, rays;
+  // image, are the same on every run. alt_sum / alt_sum_sq (height x width x 3):
+  // the sums of the samples' "path tracer alone" values and their squares
+  // (Stats::sample_alt_delta), for the rate-0 decision; alt_hits (height x
+  // width): the samples in which the path tracer found owned chain light.
+  std::vector<double> chain_m2, chain_steps, walk_steps, rays, alt_sum, alt_sum_sq, alt_hits;
   Stats stats;
   double seconds = 0.0;
   bool cancelled = false;
@@ -35,7 +38,8 @@ struct PassConfig {
   uint64_t pass = 0;
   int threads = 0;   // 0: all hardware threads
   int tile = 16;
-  // Per-pixel chain rate (crop height x width, each in [0.001, 1]), or null.
+  // Per-pixel chain rate (crop height x width, each 0 or in [0.001, 1]), or
+  // null. 0: the path tracer takes the chains' light whole in that pixel.
   std::shared_ptr<const std::vector<float>> chain_rate_map;
   bool record_costs = false;
 };

@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "core/math.h"
 #include "guiding/subpath_sample.h"
 
 namespace mpg {
@@ -20,12 +21,22 @@ struct Stats {
   const std::atomic<bool>* cancel = nullptr;
   bool cancelled() const { return cancel && cancel->load(std::memory_order_relaxed); }
   // Per-pixel context set by the render worker (not merged): the pixel's chain
-  // rate from the pass's map (0: the estimator's own), and the running sum over
-  // the pixel's samples of sum_j X_j^2 / q, X_j a chain estimate run at rate q
-  // (unweighted, mean over RGB): an unbiased estimate of the second moment the
-  // roulette multiplies by (1/q - 1) (design-notes "Chain rates per pixel").
-  float pixel_chain_rate = 0.f;
+  // rate from the pass's map (< 0: no map, the estimator's own rate; 0: the
+  // path tracer takes the chains' light whole in this pixel, no chain
+  // estimates), and the running sum over the pixel's samples of
+  // sum_j X_j^2 / q, X_j a chain estimate run at rate q (unweighted, mean over
+  // RGB): an unbiased estimate of the second moment the roulette multiplies by
+  // (1/q - 1) (design-notes "Chain rates per pixel").
+  float pixel_chain_rate = -1.f;
   double pixel_chain_m2 = 0.0;
+  // Per camera sample (reset by the render worker): what the sample's value
+  // would change by if the path tracer kept the chain paths whole and no chain
+  // estimate ran -- + the owned light's share the path tracer dropped, - the
+  // chain estimates added. Training passes record the value this gives, the
+  // "path tracer alone" estimate of the same pixel, to decide where rate 0 pays
+  // (design-notes "Handing pixels to the path tracer").
+  Color sample_alt_delta{0.f};
+  bool sample_owned_hit = false;   // ... and whether the path tracer found owned light in the sample
   uint64_t samples = 0;
   uint64_t camera_rays = 0;
   uint64_t rays = 0;           // intersection queries
@@ -53,6 +64,7 @@ struct Stats {
   uint64_t guided_trials = 0;        // trials whose seed came from the learned distribution
   uint64_t chain_inactive = 0;       // separators skipped by selective activation
   uint64_t chain_skipped = 0;        // separators skipped by the roulette (chain_rate < 1)
+  uint64_t chain_handed = 0;         // separators in pixels of rate 0 (the path tracer's light whole)
   std::vector<SubpathSample> subpaths;  // recorded in training passes
   // the largest chain estimate (luminance) and its factors: where the heavy tail comes from
   double max_chain_value = 0.0, max_chain_K = 0.0, max_chain_G = 0.0, max_chain_pn = 0.0,
@@ -72,6 +84,7 @@ struct Stats {
     guided_trials += o.guided_trials;
     chain_inactive += o.chain_inactive;
     chain_skipped += o.chain_skipped;
+    chain_handed += o.chain_handed;
     subpaths.insert(subpaths.end(), o.subpaths.begin(), o.subpaths.end());
     if (o.max_chain_value > max_chain_value) {
       max_chain_value = o.max_chain_value; max_chain_K = o.max_chain_K; max_chain_G = o.max_chain_G;
@@ -92,6 +105,7 @@ struct Stats {
             {"walk_steps", double(walk_steps)}, {"chain_steps", double(chain_steps)},
             {"guided_trials", double(guided_trials)}, {"chain_inactive", double(chain_inactive)},
             {"chain_skipped", double(chain_skipped)},
+            {"chain_handed", double(chain_handed)},
             {"subpath_samples", double(subpaths.size())},
             {"max_chain_value", max_chain_value}, {"max_chain_K", max_chain_K},
             {"max_chain_G", max_chain_G}, {"max_chain_pn", max_chain_pn},

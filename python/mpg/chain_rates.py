@@ -21,6 +21,17 @@ default) each pixel's V and M are weighted by 1 / (I_p^2 + 0.01) as relMSE
 weighs the error: a few bright pixels whose noise no rate can change (a small
 light seen through glass) then no longer drive every rate down.
 
+Rate 0 hands the pixel to the path tracer: no chain estimates, and the path
+tracer keeps the chain paths it finds whole instead of its MIS share. Per
+pixel this is a third option beside q in [q_min, 1]: variance
+V1_p + dv_p with dv_p = w_p E[(A - I_p)^2] - V1_p (A the sample's value with
+the path tracer alone, recorded in the same training samples), at cost c0_p.
+In the linearised F each pixel takes the option with the smaller share:
+  rate 0  iff  dv_p mean(C) < (1/q_p - 1) M_p mean(C) + q_p c1_p mean(V)   (2)
+At a caustic's focus the path tracer finds the light through the glass at a
+per-sample variance close to the estimator's (MIS), at 1/20 of the cost;
+where it rarely finds the light, E[(A - I)^2] ~ I^2 keeps the chains.
+
 The statistics come from the training passes only, whose random numbers the
 render never reuses: the rates are fixed before the render starts, so the image
 stays unbiased for any rates in (0, 1] (E[1{u < q} X / q] = E[X]).
@@ -41,6 +52,16 @@ import numpy as np
 # optimum by its square root.
 STEP_COST = 4.0
 
+# Rate 0 needs this many training samples, in the pixel's window, in which the
+# path tracer found the chains' light: with fewer, its variance is mostly
+# unseen (sphere, 30 s: without this floor the dim reflection caustic of the
+# small light went to the path tracer, relMSE 0.008 -> 0.03).
+HANDOFF_MIN_HITS = 64
+# ... or the chains' second moment in the window below this fraction of one
+# sample's variance: even if the path tracer never found their light, its
+# square would stay below the noise up to ~1 000 spp.
+HANDOFF_NEGLIGIBLE = 1e-3
+
 
 class CostAccumulator:
     """Per-pixel sums over training passes (crop height x width)."""
@@ -54,6 +75,10 @@ class CostAccumulator:
         self.walk_steps = np.zeros(shape)    # all walk steps (the path tracer's MIS rounds too)
         self.rays = np.zeros(shape)
         self.rate_sum = np.zeros(shape)   # sum over passes of q * spp (the rate each pass ran at)
+        # the samples' "path tracer alone" values (Stats::sample_alt_delta): sums and squares
+        self.alt_sum = np.zeros(shape + (3,))
+        self.alt_sum_sq = np.zeros(shape + (3,))
+        self.alt_hits = np.zeros(shape)   # samples in which the path tracer found owned chain light
 
     def add(self, result: dict, spp: int, q: float | np.ndarray) -> None:
         self.n += spp
@@ -63,11 +88,15 @@ class CostAccumulator:
         self.chain_steps += result["chain_steps"]
         self.walk_steps += result["walk_steps"]
         self.rays += result["rays"]
+        self.alt_sum += result["alt_sum"]
+        self.alt_sum_sq += result["alt_sum_sq"]
+        self.alt_hits += result["alt_hits"]
         self.rate_sum += np.broadcast_to(np.asarray(q, dtype=float), self.rate_sum.shape) * spp
 
 
-def _box_blur(a: np.ndarray, r: int) -> np.ndarray:
-    """Mean over a (2r+1)^2 window, clipped at the borders (summed-area table)."""
+def _box_blur(a: np.ndarray, r: int, nonneg: bool = True, total: bool = False) -> np.ndarray:
+    """Mean (total: sum) over a (2r+1)^2 window, clipped at the borders
+    (summed-area table)."""
     if r <= 0:
         return a
     h, w = a.shape
@@ -78,16 +107,24 @@ def _box_blur(a: np.ndarray, r: int) -> np.ndarray:
     x0 = np.clip(np.arange(w) - r, 0, w)
     x1 = np.clip(np.arange(w) + r + 1, 0, w)
     tot = s[y1][:, x1] - s[y0][:, x1] - s[y1][:, x0] + s[y0][:, x0]
-    cnt = (y1 - y0)[:, None] * (x1 - x0)[None, :]
-    return np.maximum(tot / cnt, 0.0)   # the table's differences can round below 0
+    cnt = 1 if total else (y1 - y0)[:, None] * (x1 - x0)[None, :]
+    # the table's differences can round a non-negative input below 0
+    return np.maximum(tot / cnt, 0.0) if nonneg else tot / cnt
 
 
 def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
-                iterations: int = 50, objective: str = "relmse") -> tuple[np.ndarray, dict]:
+                iterations: int = 50, objective: str = "relmse",
+                handoff: bool = True, min_hits: float = HANDOFF_MIN_HITS) -> tuple[np.ndarray, dict]:
     """Per-pixel rates by Eq. (1) of the module docstring, and a summary.
 
     M_p and c1_p are averaged over a (2 radius + 1)^2 window first: a pixel of a
-    short training run holds a handful of chain estimates."""
+    short training run holds a handful of chain estimates.
+
+    handoff: a pixel may also get rate 0, where the path tracer alone renders its
+    chain light better for the time: no chain estimates there, and the path
+    tracer keeps the chain paths it finds whole (Eq. (2) of the module
+    docstring), if its window holds at least min_hits samples in which the
+    path tracer found the chains' light."""
     shape = acc.chain_m2.shape
     info: dict = {"chain_rate_min_allowed": q_min}
     if acc.n < 2:
@@ -102,7 +139,9 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
     m2 = finite(acc.chain_m2) / n                         # E[sum_j X_j^2] per sample (unbiased)
     steps = finite(acc.chain_steps)
     c1 = STEP_COST * steps / (np.maximum(q_t, 1e-3) * n)  # chain cost per sample at q = 1 (ray units)
-    c0 = (finite(acc.rays) + STEP_COST * np.maximum(finite(acc.walk_steps) - steps, 0.0)) / n
+    # the path tracer's MIS rounds (pt_weight's walks): part of c0, gone at rate 0
+    mis = STEP_COST * np.maximum(finite(acc.walk_steps) - steps, 0.0) / n
+    c0 = finite(acc.rays) / n + mis
     mean = finite(acc.sum) / n
     sum_sq = finite(acc.sum_sq)
     var_t = np.maximum(sum_sq / n - mean * mean, 0.0).mean(axis=2) * (n / (n - 1))
@@ -120,33 +159,89 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
     m2_b = _box_blur(m2, radius)
     c1_b = _box_blur(c1, radius)
     has = c1_b > 0.0   # chain work here (M = 0: all cost, no light -> q_min)
-    q = np.ones(shape)
-    if np.any(has):
-        ratio = np.where(has, m2_b / np.where(has, c1_b, 1.0), 0.0)
+    # Rate 0, the path tracer alone (Eq. 2): its excess variance over the
+    # estimator's at q = 1, dv = w E[(A - I)^2] - V1_p, at the chains' cost
+    # (and the MIS rounds') saved. (A - I)^2 about the training mean I, not A's
+    # own mean: where the path tracer rarely finds the light its mean falls
+    # short, and the missing light counts as error.
+    dv_b = np.zeros(shape)
+    mis_b = _box_blur(mis, radius)
+    eligible = np.zeros(shape, dtype=bool)
+    if handoff:
+        a_mean = finite(acc.alt_sum) / n
+        a_m2 = finite(acc.alt_sum_sq) / n
+        # (n / (n - 1) as var_t's: where A = L the two cancel exactly)
+        alt_mse = np.maximum(a_m2 - 2.0 * a_mean * mean + mean * mean, 0.0).mean(axis=2) * (n / (n - 1))
+        # V1 = w var_t - (1/q_t - 1) M, the pixel's variance at q = 1 (weighted)
+        dv_b = _box_blur(wgt * alt_mse - wgt * var_t + (1.0 / q_t - 1.0) * m2, radius, nonneg=False)
+        # ... but only where the window saw the path tracer find that light
+        # often (its second moment from a few rare hits -- a dim reflection
+        # caustic of a small light -- is mostly an underestimate), or where the
+        # chains' light cannot matter: E[X]^2 <= E[X^2] below HANDOFF_NEGLIGIBLE
+        # of one sample's variance (double_slabs: the glints of the light in
+        # the slabs' bumpy tops set the variance, the chains add ~0.04 %)
+        m2_raw = finite(acc.chain_m2) / n
+        eligible = has & ((_box_blur(finite(acc.alt_hits), radius, total=True) >= min_hits) |
+                          (_box_blur(m2_raw, radius) <= HANDOFF_NEGLIGIBLE * _box_blur(var_t, radius)))
+
+    def means(q, pt):
+        """mean(wV) and mean(C) of a map (blurred M, c1, dv: what the choices see)."""
+        v = v1_mean + float(np.mean(np.where(pt, dv_b, (1.0 / q - 1.0) * m2_b)))
+        c = float(np.mean(c0 + np.where(pt, -mis_b, q * c1_b)))
+        return v, c
+
+    ratio = np.where(has, m2_b / np.where(has, c1_b, 1.0), 0.0)
+
+    def fixed_point(allow_pt):
+        q = np.ones(shape)
+        pt = np.zeros(shape, dtype=bool)
         for _ in range(iterations):
-            v_mean = v1_mean + float(np.mean((1.0 / q - 1.0) * m2))
-            c_mean = float(np.mean(c0 + q * c1))
+            v_mean, c_mean = means(q, pt)
             if not (v_mean > 0.0 and c_mean > 0.0):
                 break
             q_new = np.where(has, np.clip(np.sqrt(ratio * c_mean / v_mean), q_min, 1.0), 1.0)
-            if np.max(np.abs(q_new - q)) < 1e-4:
-                q = q_new
-                break
-            q = q_new
+            pt_new = pt
+            if allow_pt:
+                # the pixel's share of F = mean(V) mean(C), linearised: rate q
+                # adds (1/q - 1) M C + q c1 V, rate 0 adds dv C - mis V
+                g_q = (1.0 / q_new - 1.0) * m2_b * c_mean + q_new * c1_b * v_mean
+                pt_new = eligible & (dv_b * c_mean - mis_b * v_mean < g_q)
+            if np.max(np.abs(q_new - q)) < 1e-4 and np.array_equal(pt_new, pt):
+                return q_new, pt_new
+            q, pt = q_new, pt_new
+        return q, pt
+
+    q, pt = np.ones(shape), np.zeros(shape, dtype=bool)
+    if np.any(has):
+        q, pt = fixed_point(False)
+        if handoff and np.any(eligible):
+            # F is not convex once pixels switch between options, and the
+            # linearised fixed point can stop short: keep the best of it, the
+            # map without rate 0, and that map with every eligible pixel at 0
+            cands = [(q, pt), fixed_point(True), (q, eligible.copy())]
+            q, pt = min(cands, key=lambda c: float(np.prod(means(*c))) if all(
+                x > 0 for x in means(*c)) else np.inf)
     # pixels without chain work keep 1: the rate is never used there
     q = np.where(has & np.isfinite(q), q, 1.0)
+    q = np.where(pt, 0.0, q)
+    on = has & ~pt
     info.update(
         chain_rate_learned=True,
-        chain_rate_mean=float(np.mean(q[has])) if np.any(has) else 1.0,
+        chain_rate_mean=float(np.mean(q[on])) if np.any(on) else 1.0,
         chain_rate_fraction_one=float(np.mean(q[has] >= 1.0)) if np.any(has) else 1.0,
-        chain_rate_fraction_min=float(np.mean(q[has] <= q_min)) if np.any(has) else 0.0,
+        chain_rate_fraction_min=float(np.mean(on[has] & (q[has] <= q_min))) if np.any(has) else 0.0,
+        chain_rate_fraction_pt=float(np.mean(pt[has])) if np.any(has) else 0.0,
     )
     return q.astype(np.float32), info
 
 
 def rate_map_grey8(q: np.ndarray, q_low: float = 1.0 / 32) -> np.ndarray:
-    """A rate map as 8-bit grey RGB (H, W, 3): log2 scale from q_low (black) to
-    1 (white), for mpg-render --chain-rate-map and the docs figure."""
+    """A rate map as 8-bit RGB (H, W, 3): grey on a log2 scale from q_low
+    (black) to 1 (white); rate 0 (the path tracer alone) blue. For mpg-render
+    --chain-rate-map and the docs figure."""
+    q = np.asarray(q, dtype=float)
     lo = np.log2(q_low)
-    g = np.clip((np.log2(np.maximum(np.asarray(q, dtype=float), 1e-3)) - lo) / -lo, 0.0, 1.0)
-    return np.repeat(np.round(g * 255.0).astype(np.uint8)[..., None], 3, axis=2)
+    g = np.clip((np.log2(np.maximum(q, 1e-3)) - lo) / -lo, 0.0, 1.0)
+    out = np.repeat(np.round(g * 255.0).astype(np.uint8)[..., None], 3, axis=2)
+    out[q <= 0.0] = (40, 90, 220)
+    return out

@@ -146,7 +146,8 @@ def _run(args) -> int:
               f"{st['samples_per_second'] / 1e6:.2f} M samples/s{state}", file=sys.stderr)
         if st.get("integrator") == "mpg" and st.get("training_iterations", 0) > 0:
             rates = (f"chain rates per pixel: mean {st['chain_rate_mean']:.3f}, "
-                     f"{100 * st['chain_rate_fraction_one']:.0f} % at 1"
+                     f"{100 * st['chain_rate_fraction_one']:.0f} % at 1, "
+                     f"{100 * st.get('chain_rate_fraction_pt', 0.0):.0f} % to the path tracer"
                      if st.get("chain_rate_mode") == "per-pixel"
                      else f"chain rate {st['chain_rate_mean']:g}")
             print(f"mpg-render: mpg trained {st['training_iterations']} iterations "

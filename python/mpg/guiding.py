@@ -40,9 +40,14 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     q_min = float(params.pop("chain_rate_min", 1.0 / 32))
     q_train = float(params.pop("chain_rate_train", 0.125))
     objective = str(params.pop("chain_rate_objective", "relmse"))
+    # chain_handoff: a pixel may get rate 0, the path tracer alone (mpg.chain_rates, Eq. 2)
+    handoff_given = "chain_handoff" in params
+    handoff = bool(params.pop("chain_handoff", True))
     if objective not in ("mse", "relmse"):
         raise RenderError(f"chain_rate_objective must be 'mse' or 'relmse', got '{objective}'")
     auto = rate == "auto"   # render() turned any other value into a float or an error
+    if handoff_given and not auto:
+        warnings.append("chain_handoff applies to learned rates only (chain_rate=auto); ignored")
     for nm, v in (("chain_rate_min", q_min), ("chain_rate_train", q_train)):
         if not 1e-3 <= v <= 1.0:
             raise RenderError(f"{nm} must be in [0.001, 1], got {v}")
@@ -83,6 +88,13 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     photon_samples = 0
     seconds_photons = 0.0
     costs = None
+    if handoff and probe.chains_delta_lights:
+        # the path tracer cannot reach a point or spot light through a chain:
+        # rate 0 would lose that light (the core refuses such a map)
+        handoff = False
+        handoff_note = "off: the scene has a point or spot chain light"
+    else:
+        handoff_note = "on" if handoff else "off"
     if probe.chains_active and frac > 0.0:
         budget_spp = None if spp is None else max(0, int(frac * spp))
         budget_t = None if time is None else frac * time
@@ -153,7 +165,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     rate_info: dict[str, Any] = {}
     qmap = None
     if costs is not None:
-        qmap, rate_info = learn_rates(costs, q_min=q_min, objective=objective)
+        qmap, rate_info = learn_rates(costs, q_min=q_min, objective=objective, handoff=handoff)
         if not rate_info.get("chain_rate_learned"):
             # too little training (< 2 spp): the training rate throughout
             qmap, rate_info = None, {}
@@ -169,6 +181,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["integrator_params"] = {k: v for k, v in params.items() if k != "guide"}
     st["integrator_params"]["chain_rate"] = rate
     st["chain_rate_mode"] = "per-pixel" if qmap is not None else "fixed"
+    st["chain_handoff"] = handoff_note if qmap is not None else "off"
     # per-pixel: mean over the pixels with chain work; fixed: the rate used
     st["chain_rate_mean"] = float(params["chain_rate"])
     st.update(rate_info)

@@ -25,9 +25,9 @@ CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
                 "guide_dir", "training_fraction", "stree_c", "stree_epsilon", "stree_filter",
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
-                "chain_rate_min", "chain_rate_train", "chain_rate_objective"}
+                "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff"}
 BOOL_PARAMS = {"hide_emitters", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
-               "mis"}
+               "mis", "chain_handoff"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
 # The SMS paper's integrators, with their parameter names, map onto `sms`.
 SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
