@@ -75,10 +75,11 @@ def test_reference(env, capsys):
         assert r["spp"] > 0 and r["seconds"] > 0
     c = info["convergence"]
     for k in ("rse_image_mean", "median_pixel_rel_error", "rse_caustic_mean",
-              "relmse_floor_image", "relmse_floor_caustic"):
+              "relmse_floor_image", "relmse_floor_caustic", "mse_floor_image", "mse_floor_caustic"):
         assert c[k] is not None and math.isfinite(c[k]) and c[k] >= 0, k
     rgb, var = reference.load_reference(info)
     assert rgb.shape == (24, 24, 3) and var is not None and np.isfinite(var).all()
+    assert c["mse_floor_image"] == pytest.approx(float(var.astype(np.float64).mean()), rel=1e-5)
     assert rgb.mean() > 0.01
     assert info["command"].startswith("mpg-bench reference ")
     # the same command finds it in the cache; --list shows it

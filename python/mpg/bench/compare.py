@@ -135,7 +135,9 @@ def _scene_md(sc: BenchScene, srec: dict[str, Any], png: str) -> str:
     lines.append(f"Reference: `{srec['reference']['command']}` — median pixel relative error "
                  f"{report.fmt(c['median_pixel_rel_error'])}, relMSE floor (its own noise) "
                  f"{report.fmt(c['relmse_floor_image'])} image / "
-                 f"{report.fmt(c['relmse_floor_caustic'])} caustic.\n")
+                 f"{report.fmt(c['relmse_floor_caustic'])} caustic, MSE floor "
+                 f"{report.fmt(c.get('mse_floor_image'))} image / "
+                 f"{report.fmt(c.get('mse_floor_caustic'))} caustic.\n")
     has_box = sc.caustic_box is not None
     header = ["integrator", "time (s)", "spp (mean)", "MSE", "relMSE", "MAPE"]
     if has_box:

@@ -128,8 +128,10 @@ def combine(path_rgb, path_var, pt_rgb, pt_var, pt_eligible) -> tuple[np.ndarray
 
 def convergence(rgb: np.ndarray, var: np.ndarray, box) -> dict[str, Any]:
     """Relative standard error of the image mean and of the caustic-box mean (pixels
-    independent), median per-pixel relative error (luminance), and the relMSE the
-    reference's own noise adds to every comparison (mean var / (ref^2 + eps))."""
+    independent), median per-pixel relative error (luminance), and the relMSE and
+    MSE the reference's own noise adds to every comparison (mean var / (ref^2 +
+    eps), mean var): in expectation a measured MSE is the true one plus this floor,
+    so an error far below it cannot be measured against this reference."""
     rgb = np.asarray(rgb, np.float64)
     var = np.asarray(var, np.float64)
 
@@ -145,15 +147,18 @@ def convergence(rgb: np.ndarray, var: np.ndarray, box) -> dict[str, Any]:
         "rse_image_mean": rse(np.ones(rgb.shape[:2], bool)),
         "median_pixel_rel_error": float(np.median(pix_rel)),
         "relmse_floor_image": float(floor.mean()),
+        "mse_floor_image": float(var.mean()),
         "rse_caustic_mean": None,
         "median_pixel_rel_error_caustic": None,
         "relmse_floor_caustic": None,
+        "mse_floor_caustic": None,
     }
     if box is not None:
         m = region_mask(rgb.shape[:2], box)
         out["rse_caustic_mean"] = rse(m)
         out["median_pixel_rel_error_caustic"] = float(np.median(pix_rel[m]))
         out["relmse_floor_caustic"] = float(floor[m].mean())
+        out["mse_floor_caustic"] = float(var[m].mean())
     return out
 
 
