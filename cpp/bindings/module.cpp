@@ -585,9 +585,8 @@ PYBIND11_MODULE(_core, m) {
         return p != nullptr && p->chains_active();
       })
       .def_property_readonly("chains_delta_lights", [](const Integrator& i) {
-        // a point or spot chain light: rate 0 would lose its light (ChainEstimator::has_delta_lights)
         auto* p = dynamic_cast<const PathIntegrator*>(&i);
-        return p != nullptr && p->chains() && p->chains()->active() && p->chains()->has_delta_lights();
+        return p != nullptr && p->chains_delta_lights();
       })
       .def("trace_photons", [](const Integrator& i, uint64_t count, uint64_t seed) {
         // Photon initialisation of MPG (supplemental Sec. 2): sub-path samples from photons.
@@ -631,7 +630,7 @@ PYBIND11_MODULE(_core, m) {
             zero = zero || q == 0.f;
           }
           auto* pi = dynamic_cast<const PathIntegrator*>(integ.get());
-          if (zero && pi && pi->chains() && pi->chains()->active() && pi->chains()->has_delta_lights())
+          if (zero && pi && pi->chains_delta_lights())
             throw std::invalid_argument(
                 "chain_rate_map values of 0 hand a pixel's chain light to the path tracer, which cannot "
                 "reach a point or spot light through specular chains; this scene has one");

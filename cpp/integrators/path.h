@@ -30,6 +30,8 @@ class PathIntegrator : public Integrator {
     if (chains_ && !chains_->active()) chains_.reset();  // effects follow the scene
   }
   bool chains_active() const { return chains_ != nullptr; }
+  // a point or spot chain light: rate 0 would lose its light (ChainEstimator::has_delta_lights)
+  bool chains_delta_lights() const { return chains_ && chains_->has_delta_lights(); }
   const ChainEstimator* chains() const { return chains_.get(); }
   Color Li_hit(const Scene& scene, const Vec3& o, const Vec3& d, SurfaceInteraction si, PCG32& rng,
                Stats& stats) const override;

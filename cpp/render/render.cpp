@@ -101,9 +101,9 @@ void RenderJob::run() {
             st.sample_owned_hit = false;
             Color L = integrator_->Li(scene, o, d, tmin, tmax, rng, st);
             st.samples++;
-            const bool ok = std::isfinite(L.x) && std::isfinite(L.y) && std::isfinite(L.z) && L.x >= 0.f &&
-                            L.y >= 0.f && L.z >= 0.f;
-            if (!(std::isfinite(L.x) && std::isfinite(L.y) && std::isfinite(L.z))) {
+            const bool finite = std::isfinite(L.x) && std::isfinite(L.y) && std::isfinite(L.z);
+            const bool ok = finite && L.x >= 0.f && L.y >= 0.f && L.z >= 0.f;
+            if (!finite) {
               if (std::isnan(L.x) || std::isnan(L.y) || std::isnan(L.z)) st.rejected_nan++;
               else st.rejected_inf++;
               L = Color(0.f);

@@ -25,12 +25,15 @@ Rate 0 hands the pixel to the path tracer: no chain estimates, and the path
 tracer keeps the chain paths it finds whole instead of its MIS share. Per
 pixel this is a third option beside q in [q_min, 1]: variance
 V1_p + dv_p with dv_p = w_p E[(A - I_p)^2] - V1_p (A the sample's value with
-the path tracer alone, recorded in the same training samples), at cost c0_p.
-In the linearised F each pixel takes the option with the smaller share:
-  rate 0  iff  dv_p mean(C) < (1/q_p - 1) M_p mean(C) + q_p c1_p mean(V)   (2)
+the path tracer alone, recorded in the same training samples), at cost
+c0_p - mis_p (the path tracer's MIS rounds go too). In the linearised F each
+pixel takes the option with the smaller share:
+  rate 0  iff  dv_p mean(C) - mis_p mean(V) < (1/q_p - 1) M_p mean(C) + q_p c1_p mean(V)   (2)
 At a caustic's focus the path tracer finds the light through the glass at a
-per-sample variance close to the estimator's (MIS), at 1/20 of the cost;
-where it rarely finds the light, E[(A - I)^2] ~ I^2 keeps the chains.
+per-sample variance close to the estimator's (MIS), at 1/12 of the time per
+sample (bench/crop_variance.py). Where it rarely finds the light its variance is mostly unseen in
+training, so rate 0 is only open to pixels whose window saw HANDOFF_MIN_HITS
+hits, or whose chains' light is negligible (HANDOFF_NEGLIGIBLE).
 
 The statistics come from the training passes only, whose random numbers the
 render never reuses: the rates are fixed before the render starts, so the image
@@ -124,7 +127,8 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
     chain light better for the time: no chain estimates there, and the path
     tracer keeps the chain paths it finds whole (Eq. (2) of the module
     docstring), if its window holds at least min_hits samples in which the
-    path tracer found the chains' light."""
+    path tracer found the chains' light, or the chains' light there is
+    negligible."""
     shape = acc.chain_m2.shape
     info: dict = {"chain_rate_min_allowed": q_min}
     if acc.n < 2:
@@ -136,7 +140,7 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
         return np.nan_to_num(np.asarray(a, dtype=float), nan=0.0, posinf=0.0, neginf=0.0)
 
     q_t = acc.rate_sum / n                                # the training passes' mean rate per pixel
-    m2 = finite(acc.chain_m2) / n                         # E[sum_j X_j^2] per sample (unbiased)
+    m2_raw = finite(acc.chain_m2) / n                     # E[sum_j X_j^2] per sample (unbiased)
     steps = finite(acc.chain_steps)
     c1 = STEP_COST * steps / (np.maximum(q_t, 1e-3) * n)  # chain cost per sample at q = 1 (ray units)
     # the path tracer's MIS rounds (pt_weight's walks): part of c0, gone at rate 0
@@ -153,7 +157,7 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
         wgt = np.ones(shape)
     else:
         raise ValueError(f"objective must be 'mse' or 'relmse', got '{objective}'")
-    m2 = m2 * wgt
+    m2 = m2_raw * wgt
     # V1 = V(q_t) - (1/q_t - 1) M: only its image mean enters Eq. (1)
     v1_mean = max(float(np.mean(wgt * var_t - (1.0 / q_t - 1.0) * m2)), 0.0)
     m2_b = _box_blur(m2, radius)
@@ -179,8 +183,7 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
         # caustic of a small light -- is mostly an underestimate), or where the
         # chains' light cannot matter: E[X]^2 <= E[X^2] below HANDOFF_NEGLIGIBLE
         # of one sample's variance (double_slabs: the glints of the light in
-        # the slabs' bumpy tops set the variance, the chains add ~0.04 %)
-        m2_raw = finite(acc.chain_m2) / n
+        # the slabs' bumpy tops set the variance, the chains' E[X^2] is 0.7 % of it)
         eligible = has & ((_box_blur(finite(acc.alt_hits), radius, total=True) >= min_hits) |
                           (_box_blur(m2_raw, radius) <= HANDOFF_NEGLIGIBLE * _box_blur(var_t, radius)))
 
@@ -189,6 +192,11 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
         v = v1_mean + float(np.mean(np.where(pt, dv_b, (1.0 / q - 1.0) * m2_b)))
         c = float(np.mean(c0 + np.where(pt, -mis_b, q * c1_b)))
         return v, c
+
+    def model_f(cand):
+        """F = mean(wV) mean(C) of a (q, pt) map; inf where a mean is not positive."""
+        v, c = means(*cand)
+        return v * c if v > 0.0 and c > 0.0 else np.inf
 
     ratio = np.where(has, m2_b / np.where(has, c1_b, 1.0), 0.0)
 
@@ -219,8 +227,7 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
             # linearised fixed point can stop short: keep the best of it, the
             # map without rate 0, and that map with every eligible pixel at 0
             cands = [(q, pt), fixed_point(True), (q, eligible.copy())]
-            q, pt = min(cands, key=lambda c: float(np.prod(means(*c))) if all(
-                x > 0 for x in means(*c)) else np.inf)
+            q, pt = min(cands, key=model_f)
     # pixels without chain work keep 1: the rate is never used there
     q = np.where(has & np.isfinite(q), q, 1.0)
     q = np.where(pt, 0.0, q)
