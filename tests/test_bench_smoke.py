@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from mpg.bench import cli, curves, reference, runners
+from mpg.bench.scenes import BenchError
 
 HAS_MI = importlib.util.find_spec("mitsuba") is not None
 INTEGRATORS = ["path"] + (["mitsuba:path", "mitsuba:ptracer"] if HAS_MI else [])
@@ -202,3 +203,37 @@ def test_reference_hint_from_sidecar():
     assert reference.parse_hint("mitsuba ptracer: point light") == ("mitsuba", ["ptracer"])
     assert reference.parse_hint("mpg long run (sms_star)") == ("mpg", None)
     assert reference.parse_hint("") == (None, None)
+
+
+def test_reference_camera_delta(env, tmp_path):
+    """--camera-delta: the reference is the sum of two renders, `--integrator`
+    without and the named integrator with only the light seen from the camera
+    through delta scattering; image and variance are exactly those renders'
+    sums, the recipe and command name it, and a recipe without it keeps the
+    key of older references (no 'camera_delta' entry)."""
+    import mpg
+
+    sc = runners_scene(env)
+    info = reference.make_reference(sc, spp=4, passes=2, method="mpg", integrator="sms_star",
+                                    camera_delta="path", cache=str(tmp_path))
+    assert [r["renderer"] for r in info["renderers"]] == [
+        "mpg:sms_star/camera_delta=exclude", "mpg:path/camera_delta=only"]
+    assert "--camera-delta path" in info["command"]
+    assert info["recipe"]["camera_delta"] == "path"
+    s = mpg.load_file(env["scene"], res=24)
+    seed = reference.DEFAULT_SEED
+    a = mpg.render(s, {"type": "sms_star", "camera_delta": "exclude"}, spp=4, seed=seed, progress=False)
+    b = mpg.render(s, {"type": "path", "camera_delta": "only"}, spp=4, seed=seed + 500_000,
+                   progress=False)
+    rgb, var = reference.load_reference(info)
+    np.testing.assert_allclose(rgb, a.rgb.astype(np.float64) + b.rgb, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(var, a.variance.astype(np.float64) + b.variance, rtol=1e-5, atol=1e-9)
+    plain = reference.recipe(sc, time=1, spp=None, passes=4, seed=seed, method="mpg", integrator="path")
+    assert "camera_delta" not in plain
+    if HAS_MI:
+        with pytest.raises(BenchError, match="needs --method mpg"):
+            reference.recipe(sc, time=1, spp=None, passes=4, seed=seed, method="mitsuba",
+                             integrator="path", camera_delta="path")
+    with pytest.raises(BenchError, match="without its own camera_delta"):
+        reference.recipe(sc, time=1, spp=None, passes=4, seed=seed, method="mpg", integrator="path",
+                         camera_delta="path/camera_delta=all")

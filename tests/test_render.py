@@ -248,3 +248,31 @@ def test_ctrl_c_between_passes_keeps_the_image(scenes_dir, monkeypatch):
     # when it finished before the loop looked (a finished pass is never lost)
     assert (img.stats["passes"], img.spp) in ((2, 2), (3, 4)) and np.isfinite(img.rgb).all()
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+# --- camera_delta: the light seen from the camera through delta scattering only
+
+
+@pytest.mark.parametrize("integ", ["path", "sms_star"])
+def test_camera_delta_splits_the_image_path_by_path(scenes_dir, integ):
+    """exclude + only = all, sample by sample (same seed, same random numbers):
+    every path is in exactly one of the two. On the eval sphere the camera sees
+    the light refracted and reflected in the glass, so `only` is not empty, and
+    it ends its paths at the first diffuse vertex."""
+    sc = mpg.load_file(scenes_dir / "eval" / "sphere.xml", res=64)
+    spp = 64 if integ == "path" else 32
+    ims = {m: mpg.render(sc, {"type": integ, "camera_delta": m}, spp=spp, seed=3, progress=False)
+           for m in ("all", "exclude", "only")}
+    a, e, o = (ims[m].rgb.astype(np.float64) for m in ("all", "exclude", "only"))
+    assert np.abs(a - e - o).max() <= 1e-5 * max(1.0, np.abs(a).max())
+    lit = o.sum(axis=2) > 0
+    assert 0 < lit.sum() < 0.01 * lit.size        # a few pixels: the light's images in the glass
+    assert (np.abs(a - e).sum(axis=2) > 0).sum() == lit.sum()
+    assert ims["only"].stats["shadow_rays"] == 0 and ims["only"].stats.get("chain_estimates", 0) == 0
+    assert ims["only"].stats["path_vertices"] < ims["all"].stats["path_vertices"]
+
+
+def test_camera_delta_bad_value_is_a_clear_error(scenes_dir):
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res=8)
+    with pytest.raises(Exception, match="camera_delta must be all, exclude or only"):
+        mpg.render(sc, {"type": "path", "camera_delta": "some"}, spp=1, progress=False)

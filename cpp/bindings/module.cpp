@@ -199,6 +199,11 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
   pp.max_depth = get<int>(p, "max_depth", -1);
   pp.rr_depth = get<int>(p, "rr_depth", 5);
   pp.hide_emitters = get<bool>(p, "hide_emitters", false);
+  const std::string cd = get<std::string>(p, "camera_delta", "all");
+  if (cd == "all") pp.camera_delta = PathParams::CameraDelta::All;
+  else if (cd == "exclude") pp.camera_delta = PathParams::CameraDelta::Exclude;
+  else if (cd == "only") pp.camera_delta = PathParams::CameraDelta::Only;
+  else throw std::invalid_argument("camera_delta must be all, exclude or only, got '" + cd + "'");
   if (pp.max_depth < -1) throw std::invalid_argument("max_depth must be -1 or >= 0");
   if (pp.rr_depth < 0) throw std::invalid_argument("rr_depth must be >= 0");
   if (type == "path") return std::make_shared<PathIntegrator>(pp);

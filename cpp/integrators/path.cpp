@@ -20,9 +20,13 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
   thread_local std::vector<SurfaceInteraction> chain_si;  // the chain's vertices (for the MIS weight)
   chain_si.clear();
   bool chain_ok = false;
+  // every BSDF sample so far delta (PathParams::camera_delta)
+  bool delta_prefix = true;
+  const bool cd_only = p_.camera_delta == PathParams::CameraDelta::Only;
+  const bool cd_exclude = p_.camera_delta == PathParams::CameraDelta::Exclude;
 
   for (uint32_t depth = 0;; ) {
-    const bool show = !(p_.hide_emitters && depth == 0);
+    const bool show = !(p_.hide_emitters && depth == 0) && !(cd_exclude && delta_prefix);
     if (!si.valid) {
       if (show) {
         for (int e : scene.infinite_emitters) {
@@ -77,7 +81,7 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     // Next-event estimation (not for delta BSDFs).
     const float u_sel = rng.next_float();
     const Vec2 u_em(rng.next_float(), rng.next_float());
-    if (separator) {
+    if (separator && !cd_only) {
       const EmitterSample es = scene.sample_emitter(si.p, u_sel, u_em);
       if (es.pdf > 0.f && !is_black(es.value)) {
         const Color f = scene.bsdfs.eval(ctx, si.wi, es.wi);
@@ -94,7 +98,7 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     }
 
     // Light through specular chains, estimated at the separator.
-    if (chains_ && separator) {
+    if (chains_ && separator && !cd_only) {
       // Russian roulette on the (costly) chain estimate: E[1{u < q} X / q] = E[X]
       // for any q > 0, and the path tracer's share of the chain paths does not
       // depend on it, so the sum stays unbiased.
@@ -124,6 +128,10 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     Vec3 wo;
     const BSDFSample bs = scene.bsdfs.sample(ctx, si.wi, u1, u2, wo);
     if (!(bs.pdf > 0.f) || is_black(bs.weight)) break;
+    if (!bs.delta) {
+      if (cd_only) break;  // the rest of this path is Exclude's
+      delta_prefix = false;
+    }
     beta *= bs.weight;
     eta *= bs.eta;
     if (chains_) {

@@ -17,6 +17,14 @@ struct PathParams {
   int max_depth = -1;
   int rr_depth = 5;
   bool hide_emitters = false;
+  // The light that reaches the camera through delta scattering only (the
+  // emitters seen directly or in ideal glass and mirrors: no separator, so no
+  // NEE or chain estimate has it): All keeps it, Exclude leaves it out, Only
+  // renders it alone (the path ends at its first non-delta vertex). Exclude +
+  // Only = All, path by path: a reference splits the work this way
+  // (mpg-bench reference --camera-delta path), nothing else uses it.
+  enum class CameraDelta { All, Exclude, Only };
+  CameraDelta camera_delta = CameraDelta::All;
   int hard_depth_cap = 1024;  // safety net against unbounded loops (counted)
 };
 

@@ -19,7 +19,7 @@ from mpg.scene.desc import IntegratorDesc, SceneDesc
 # Integrators implemented by the core, and the papers' names that map onto
 # them until their own implementation lands (kept as hints, with a warning).
 IMPLEMENTED = {"path", "sms", "sms_star", "mpg"}
-PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters"}
+PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters", "camera_delta"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
                 "threshold", "max_iterations", "form", "glossy_threshold", "mis", "chain_rate"}
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",

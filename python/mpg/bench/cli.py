@@ -69,6 +69,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="auto: Mitsuba ptracer+path unless the sidecar says 'mpg' or Mitsuba "
                    "is missing")
     r.add_argument("--integrator", default="path", help="mpg integrator for --method mpg")
+    r.add_argument("--camera-delta", metavar="INTEGRATOR",
+                   help="--method mpg: render the light seen from the camera through delta "
+                   "scattering only (a light in glass or a mirror) apart with this integrator "
+                   "(e.g. path), half the budget; for tiny bright lights")
     r.add_argument("--cache", help="cache folder (default $MPG_CACHE or ~/.cache/mpg/references)")
     r.add_argument("--force", action="store_true", help="render even if cached")
     r.add_argument("--list", action="store_true", help="list the cached references")
@@ -136,7 +140,8 @@ def _run(args, argv) -> int:
         info = ref.make_reference(sc, time=args.time, spp=args.spp, passes=args.passes,
                                   seed=ref.DEFAULT_SEED if args.seed is None else args.seed,
                                   method=args.method, integrator=args.integrator,
-                                  cache=args.cache, force=args.force)
+                                  cache=args.cache, force=args.force,
+                                  camera_delta=args.camera_delta)
         print(info["exr"])
         return 0
 
