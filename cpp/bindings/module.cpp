@@ -166,6 +166,14 @@ py::dict pass_to_dict(PassResult& r) {
     DArray hits(shape2);
     std::copy(r.alt_hits.begin(), r.alt_hits.end(), hits.mutable_data());
     out["alt_hits"] = hits;
+    DArray drays(shape2);
+    std::copy(r.delta_rays.begin(), r.delta_rays.end(), drays.mutable_data());
+    out["delta_rays"] = drays;
+    DArray dsum(shape), dsq(shape);
+    std::copy(r.delta_sum.begin(), r.delta_sum.end(), dsum.mutable_data());
+    std::copy(r.delta_sum_sq.begin(), r.delta_sum_sq.end(), dsq.mutable_data());
+    out["delta_sum"] = dsum;
+    out["delta_sum_sq"] = dsq;
   }
   auto st = r.stats.to_map();
   for (size_t i = 1; i < r.stats.walk_failures.size(); ++i)
@@ -617,7 +625,8 @@ PYBIND11_MODULE(_core, m) {
 
   py::class_<RenderJob, std::shared_ptr<RenderJob>>(m, "RenderJob")
       .def(py::init([](std::shared_ptr<Scene> scene, std::shared_ptr<Integrator> integ, int spp, uint64_t seed,
-                       uint64_t pass, int threads, py::object chain_rate_map, bool record_costs) {
+                       uint64_t pass, int threads, py::object chain_rate_map, bool record_costs,
+                       py::object delta_split_map) {
         if (!scene->committed()) throw std::runtime_error("scene not committed");
         if (spp < 1) throw std::invalid_argument("spp must be >= 1");
         PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
@@ -641,11 +650,26 @@ PYBIND11_MODULE(_core, m) {
                 "reach a point or spot light through specular chains; this scene has one");
           cfg.chain_rate_map = std::move(m);
         }
+        if (!delta_split_map.is_none()) {
+          const FArray a = py::cast<FArray>(delta_split_map);
+          const Camera& c = scene->camera;
+          if (a.ndim() != 2 || a.shape(0) != c.crop_h || a.shape(1) != c.crop_w)
+            throw std::invalid_argument("delta_split_map must have shape (crop height, crop width)");
+          auto m = std::make_shared<std::vector<float>>(a.data(), a.data() + a.size());
+          for (float k : *m)
+            if (!(k >= 1.f && k <= 64.f && k == std::floor(k)))
+              throw std::invalid_argument("delta_split_map values must be integers in [1, 64]");
+          auto* pi = dynamic_cast<const PathIntegrator*>(integ.get());
+          if (pi && pi->camera_delta() != PathParams::CameraDelta::All)
+            throw std::invalid_argument("delta_split_map needs the integrator's camera_delta = all");
+          cfg.delta_split_map = std::move(m);
+        }
         auto job = std::make_shared<RenderJob>(scene, integ, cfg);
         job->start();
         return job;
       }), py::arg("scene"), py::arg("integrator"), py::arg("spp"), py::arg("seed") = 0, py::arg("pass_index") = 0,
-         py::arg("threads") = 0, py::arg("chain_rate_map") = py::none(), py::arg("record_costs") = false)
+         py::arg("threads") = 0, py::arg("chain_rate_map") = py::none(), py::arg("record_costs") = false,
+         py::arg("delta_split_map") = py::none())
       .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
       .def("cancel", &RenderJob::cancel)
       .def_property_readonly("progress", &RenderJob::progress)

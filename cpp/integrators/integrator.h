@@ -18,6 +18,11 @@ class Integrator {
     stats.rays++;
     return Li_hit(scene, o, d, scene.intersect(o, d, tmin, tmax), rng, stats);
   }
+  // Only the light reaching the camera through delta scattering (the extra
+  // paths of Stats::split_delta); integrators that do not split return 0.
+  virtual Color Li_delta(const Scene&, const Vec3&, const Vec3&, float, float, PCG32&, Stats&) const {
+    return Color(0.f);
+  }
 };
 
 }  // namespace mpg

@@ -2,8 +2,9 @@
 
 namespace mpg {
 
-Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d_in,
-                             SurfaceInteraction si, PCG32& rng, Stats& st) const {
+Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_in,
+                            SurfaceInteraction si, PCG32& rng, Stats& st,
+                            PathParams::CameraDelta mode) const {
   Color L(0.f), beta(1.f);
   if (p_.max_depth == 0) return L;
   float eta = 1.f;
@@ -22,8 +23,18 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
   bool chain_ok = false;
   // every BSDF sample so far delta (PathParams::camera_delta)
   bool delta_prefix = true;
-  const bool cd_only = p_.camera_delta == PathParams::CameraDelta::Only;
-  const bool cd_exclude = p_.camera_delta == PathParams::CameraDelta::Exclude;
+  const bool cd_only = mode == PathParams::CameraDelta::Only;
+  const bool cd_exclude = mode == PathParams::CameraDelta::Exclude;
+  const bool cd_all = mode == PathParams::CameraDelta::All;
+  // Light found by BSDF sampling: on a delta prefix (All) it is also the
+  // sample's delta part, which a split pixel averages apart (render.cpp).
+  auto add = [&](const Color& c) {
+    if (cd_all && delta_prefix) {
+      st.sample_delta_L += c;
+      if (st.split_delta) return;
+    }
+    L += c;
+  };
 
   for (uint32_t depth = 0;; ) {
     const bool show = !(p_.hide_emitters && depth == 0) && !(cd_exclude && delta_prefix);
@@ -35,7 +46,7 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
           const Color Le = em.eval_env(d);
           if (is_black(Le)) continue;
           const float w = prev_delta ? 1.f : power_heuristic(prev_pdf, scene.pdf_emitter_escape(e, d));
-          L += beta * Le * w;
+          add(beta * Le * w);
         }
       }
       break;
@@ -63,7 +74,7 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
         }
       } else if (!is_black(Le)) {
         const float w = prev_delta ? 1.f : power_heuristic(prev_pdf, scene.pdf_emitter_hit(prev_p, si));
-        L += beta * Le * w;
+        add(beta * Le * w);
       }
     }
     if (depth + 1 >= max_depth) break;
@@ -173,6 +184,7 @@ Color PathIntegrator::Li_hit(const Scene& scene, const Vec3& o_in, const Vec3& d
     const Vec3 org = offset_ray_origin(si.p, si.ng, wo);
     d = wo;
     st.rays++;
+    if (cd_all && delta_prefix) st.delta_prefix_rays++;
     si = scene.intersect(org, d, 0.f, kInf);
   }
   return L;

@@ -22,7 +22,8 @@ struct PathParams {
   // NEE or chain estimate has it): All keeps it, Exclude leaves it out, Only
   // renders it alone (the path ends at its first non-delta vertex). Exclude +
   // Only = All, path by path: a reference splits the work this way
-  // (mpg-bench reference --camera-delta path), nothing else uses it.
+  // (mpg-bench reference --camera-delta path); mpg's delta split traces extra
+  // Only paths (Li_delta, Stats::split_delta).
   enum class CameraDelta { All, Exclude, Only };
   CameraDelta camera_delta = CameraDelta::All;
   int hard_depth_cap = 1024;  // safety net against unbounded loops (counted)
@@ -41,10 +42,20 @@ class PathIntegrator : public Integrator {
   // a point or spot chain light: rate 0 would lose its light (ChainEstimator::has_delta_lights)
   bool chains_delta_lights() const { return chains_ && chains_->has_delta_lights(); }
   const ChainEstimator* chains() const { return chains_.get(); }
+  PathParams::CameraDelta camera_delta() const { return p_.camera_delta; }
   Color Li_hit(const Scene& scene, const Vec3& o, const Vec3& d, SurfaceInteraction si, PCG32& rng,
-               Stats& stats) const override;
+               Stats& stats) const override {
+    return trace(scene, o, d, std::move(si), rng, stats, p_.camera_delta);
+  }
+  Color Li_delta(const Scene& scene, const Vec3& o, const Vec3& d, float tmin, float tmax, PCG32& rng,
+                 Stats& stats) const override {
+    stats.rays++;
+    return trace(scene, o, d, scene.intersect(o, d, tmin, tmax), rng, stats, PathParams::CameraDelta::Only);
+  }
 
  private:
+  Color trace(const Scene& scene, const Vec3& o, const Vec3& d, SurfaceInteraction si, PCG32& rng,
+              Stats& stats, PathParams::CameraDelta mode) const;
   PathParams p_;
   std::shared_ptr<const ChainEstimator> chains_;
 };

@@ -56,9 +56,14 @@ void RenderJob::run() {
     result_.alt_sum.assign(size_t(W) * H * 3, 0.0);
     result_.alt_hits.assign(size_t(W) * H, 0.0);
     result_.alt_sum_sq.assign(size_t(W) * H * 3, 0.0);
+    result_.delta_rays.assign(size_t(W) * H, 0.0);
+    result_.delta_sum.assign(size_t(W) * H * 3, 0.0);
+    result_.delta_sum_sq.assign(size_t(W) * H * 3, 0.0);
   }
   const std::vector<float>* qmap = cfg_.chain_rate_map.get();
   if (qmap && qmap->size() != size_t(W) * H) qmap = nullptr;  // checked by the bindings
+  const std::vector<float>* kmap = cfg_.delta_split_map.get();
+  if (kmap && kmap->size() != size_t(W) * H) kmap = nullptr;
   int nthreads = cfg_.threads > 0 ? cfg_.threads : int(std::thread::hardware_concurrency());
   nthreads = std::max(1, std::min(nthreads, tiles_total_));
   std::atomic<int> next_tile{0};
@@ -81,9 +86,13 @@ void RenderJob::run() {
           const int fx = cam.crop_x + x, fy = cam.crop_y + y;
           const uint64_t pixel = uint64_t(fy) * uint64_t(cam.width) + uint64_t(fx);
           double s[3] = {0, 0, 0}, s2[3] = {0, 0, 0}, a[3] = {0, 0, 0}, a2[3] = {0, 0, 0}, hits = 0;
+          double ds[3] = {0, 0, 0}, ds2[3] = {0, 0, 0};
           st.pixel_chain_rate = qmap ? (*qmap)[size_t(y) * W + x] : -1.f;
           st.pixel_chain_m2 = 0.0;
+          const int ksplit = kmap ? std::max(1, int((*kmap)[size_t(y) * W + x])) : 1;
+          st.split_delta = ksplit > 1;
           const uint64_t steps0 = st.chain_steps, walk0 = st.walk_steps, rays0 = st.rays + st.shadow_rays + st.camera_rays;
+          const uint64_t delta0 = st.delta_prefix_rays;
           for (int k = 0; k < cfg_.spp; ++k) {
             // A cancelled pass is dropped whole (never splatted), so stopping
             // mid-tile is safe; checking per sample bounds the overshoot of a
@@ -99,7 +108,26 @@ void RenderJob::run() {
             st.camera_rays++;
             st.sample_alt_delta = Color(0.f);
             st.sample_owned_hit = false;
+            st.sample_delta_L = Color(0.f);
             Color L = integrator_->Li(scene, o, d, tmin, tmax, rng, st);
+            if (ksplit > 1) {
+              // The light seen through delta scattering only, left out of L:
+              // the mean of this path's and k - 1 more camera paths' (each an
+              // unbiased estimate of it, the same pixel filter, the sample's own
+              // random stream).
+              Color D = st.sample_delta_L;
+              for (int j = 1; j < ksplit; ++j) {
+                const float ex = cam.filter.sample(rng.next_float());
+                const float ey = cam.filter.sample(rng.next_float());
+                Vec3 o2, d2;
+                float tmin2, tmax2;
+                cam.generate_ray(Vec2(float(fx) + 0.5f + ex, float(fy) + 0.5f + ey), o2, d2, tmin2, tmax2);
+                st.camera_rays++;
+                st.delta_split_paths++;
+                D += integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st);
+              }
+              L += D * (1.f / float(ksplit));
+            }
             st.samples++;
             const bool finite = std::isfinite(L.x) && std::isfinite(L.y) && std::isfinite(L.z);
             const bool ok = finite && L.x >= 0.f && L.y >= 0.f && L.z >= 0.f;
@@ -119,6 +147,12 @@ void RenderJob::run() {
               // The path tracer alone; a rejected sample (L = 0) counts 0 here too.
               const Color A = ok ? L + st.sample_alt_delta : Color(0.f);
               if (ok && st.sample_owned_hit) hits += 1.0;
+              const Color Dl = st.sample_delta_L;
+              if (ok && std::isfinite(Dl.x) && std::isfinite(Dl.y) && std::isfinite(Dl.z))
+                for (int c = 0; c < 3; ++c) {
+                  ds[c] += Dl[c];
+                  ds2[c] += double(Dl[c]) * Dl[c];
+                }
               if (std::isfinite(A.x) && std::isfinite(A.y) && std::isfinite(A.z))
                 for (int c = 0; c < 3; ++c) {
                   const double v = std::max(double(A[c]), 0.0);
@@ -139,9 +173,12 @@ void RenderJob::run() {
             result_.walk_steps[j] = double(st.walk_steps - walk0);
             result_.rays[j] = double(st.rays + st.shadow_rays + st.camera_rays - rays0);
             result_.alt_hits[j] = hits;
+            result_.delta_rays[j] = double(st.delta_prefix_rays - delta0);
             for (int c = 0; c < 3; ++c) {
               result_.alt_sum[i + c] = a[c];
               result_.alt_sum_sq[i + c] = a2[c];
+              result_.delta_sum[i + c] = ds[c];
+              result_.delta_sum_sq[i + c] = ds2[c];
             }
           }
         }

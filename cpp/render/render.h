@@ -26,7 +26,14 @@ struct PassResult {
   // the sums of the samples' "path tracer alone" values and their squares
   // (Stats::sample_alt_delta), for the rate-0 decision; alt_hits (height x
   // width): the samples in which the path tracer found owned chain light.
-  std::vector<double> chain_m2, chain_steps, walk_steps, rays, alt_sum, alt_sum_sq, alt_hits;
+  // delta_rays (height x width): the rays its samples traced after delta
+  // scattering only (Stats::delta_prefix_rays), what an extra camera path of
+  // the delta split costs besides its camera ray.
+  // delta_sum / delta_sum_sq (height x width x 3): the sums of the samples'
+  // light seen through delta scattering only (Stats::sample_delta_L) and of
+  // its squares, for the variance the delta split divides.
+  std::vector<double> chain_m2, chain_steps, walk_steps, rays, alt_sum, alt_sum_sq, alt_hits, delta_rays;
+  std::vector<double> delta_sum, delta_sum_sq;
   Stats stats;
   double seconds = 0.0;
   bool cancelled = false;
@@ -41,6 +48,10 @@ struct PassConfig {
   // Per-pixel chain rate (crop height x width, each 0 or in [0.001, 1]), or
   // null. 0: the path tracer takes the chains' light whole in that pixel.
   std::shared_ptr<const std::vector<float>> chain_rate_map;
+  // Per-pixel delta-split count k >= 1 (crop height x width, integers), or
+  // null (1 everywhere): each sample's light seen through delta scattering
+  // only is averaged with k - 1 extra camera paths of that light alone.
+  std::shared_ptr<const std::vector<float>> delta_split_map;
   bool record_costs = false;
 };
 

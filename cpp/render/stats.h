@@ -37,6 +37,14 @@ struct Stats {
   // (design-notes "Handing pixels to the path tracer").
   Color sample_alt_delta{0.f};
   bool sample_owned_hit = false;   // ... and whether the path tracer found owned light in the sample
+  // Per camera sample: the part of its value from the light seen through delta
+  // scattering only (PathParams::CameraDelta), recorded in every sample. With
+  // split_delta (set per pixel by the render worker when its delta-split count
+  // k > 1) that part is left out of Li's value, and the worker averages it with
+  // k - 1 extra camera paths of that light alone (design-notes "Splitting the
+  // light seen in the glass").
+  Color sample_delta_L{0.f};
+  bool split_delta = false;
   uint64_t samples = 0;
   uint64_t camera_rays = 0;
   uint64_t rays = 0;           // intersection queries
@@ -46,6 +54,8 @@ struct Stats {
   uint64_t rejected_negative = 0;
   uint64_t depth_capped = 0;   // paths stopped by the hard bounce cap
   uint64_t path_vertices = 0;
+  uint64_t delta_prefix_rays = 0;    // rays traced after delta scattering only (camera rays not counted)
+  uint64_t delta_split_paths = 0;    // extra camera paths of the light seen through delta scattering
   // specular chains (sms, sms_star)
   uint64_t chain_estimates = 0;      // separators where a chain was attempted
   uint64_t chain_converged = 0;      // first trials that converged
@@ -75,6 +85,7 @@ struct Stats {
     shadow_rays += o.shadow_rays; rejected_nan += o.rejected_nan; rejected_inf += o.rejected_inf;
     rejected_negative += o.rejected_negative; depth_capped += o.depth_capped;
     path_vertices += o.path_vertices;
+    delta_prefix_rays += o.delta_prefix_rays; delta_split_paths += o.delta_split_paths;
     chain_estimates += o.chain_estimates; chain_converged += o.chain_converged;
     chain_contributions += o.chain_contributions; bernoulli_trials += o.bernoulli_trials;
     bernoulli_capped += o.bernoulli_capped; owned_dropped += o.owned_dropped; owned_shared += o.owned_shared; chain_ns += o.chain_ns;
@@ -97,6 +108,7 @@ struct Stats {
             {"rejected_nan", double(rejected_nan)}, {"rejected_inf", double(rejected_inf)},
             {"rejected_negative", double(rejected_negative)},
             {"depth_capped", double(depth_capped)}, {"path_vertices", double(path_vertices)},
+            {"delta_prefix_rays", double(delta_prefix_rays)}, {"delta_split_paths", double(delta_split_paths)},
             {"chain_estimates", double(chain_estimates)}, {"chain_converged", double(chain_converged)},
             {"chain_contributions", double(chain_contributions)},
             {"bernoulli_trials", double(bernoulli_trials)}, {"bernoulli_capped", double(bernoulli_capped)},

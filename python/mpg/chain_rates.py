@@ -82,6 +82,10 @@ class CostAccumulator:
         self.alt_sum = np.zeros(shape + (3,))
         self.alt_sum_sq = np.zeros(shape + (3,))
         self.alt_hits = np.zeros(shape)   # samples in which the path tracer found owned chain light
+        self.delta_rays = np.zeros(shape)  # rays traced after delta scattering only (Stats::delta_prefix_rays)
+        # the samples' light seen through delta scattering only (Stats::sample_delta_L): sums and squares
+        self.delta_sum = np.zeros(shape + (3,))
+        self.delta_sum_sq = np.zeros(shape + (3,))
 
     def add(self, result: dict, spp: int, q: float | np.ndarray) -> None:
         self.n += spp
@@ -94,6 +98,9 @@ class CostAccumulator:
         self.alt_sum += result["alt_sum"]
         self.alt_sum_sq += result["alt_sum_sq"]
         self.alt_hits += result["alt_hits"]
+        self.delta_rays += result["delta_rays"]
+        self.delta_sum += result["delta_sum"]
+        self.delta_sum_sq += result["delta_sum_sq"]
         self.rate_sum += np.broadcast_to(np.asarray(q, dtype=float), self.rate_sum.shape) * spp
 
 
@@ -240,6 +247,69 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
         chain_rate_fraction_pt=float(np.mean(pt[has])) if np.any(has) else 0.0,
     )
     return q.astype(np.float32), info
+
+
+# The delta split (learn_delta_split): at most this many camera paths per
+# sample for the light seen through delta scattering only.
+DELTA_SPLIT_MAX = 16
+
+
+def learn_delta_split(acc: CostAccumulator, q: np.ndarray, radius: int = 3, objective: str = "relmse",
+                      k_max: int = DELTA_SPLIT_MAX) -> tuple[np.ndarray, dict]:
+    """Per-pixel count k of camera paths that estimate the light seen through
+    delta scattering only (design-notes "Splitting the light seen in the
+    glass").
+
+    A sample's variance is V = R + B, B that light's part (the light's own
+    images in glass and mirrors, glints in bumpy glass) and R the rest. With k
+    paths for it, B / k, at (k - 1) o more cost, o = 1 + the rays a sample traced
+    after delta scattering only. Minimising F = mean(wV) mean(C), as
+    learn_rates does (C the cost per sample at the learned rates q, w the
+    objective's weight), over each pixel's k gives
+
+        k_p = sqrt(w_p B_p mean(C) / (o_p mean(wV)))            (Eq. 3)
+
+    rounded, in [1, k_max]. B_p is the training samples' variance of that
+    light, averaged over the (2 radius + 1)^2 window like learn_rates' moments;
+    where training saw none of it, k = 1 (a tiny light's glints may then be
+    missed: the split only ever lowers what training saw). Any fixed k >= 1
+    leaves the image unbiased."""
+    shape = acc.delta_rays.shape
+    info: dict = {}
+    if acc.n < 2:
+        return np.ones(shape, dtype=np.float32), info
+    n = float(acc.n)
+
+    def finite(a):
+        return np.nan_to_num(np.asarray(a, dtype=float), nan=0.0, posinf=0.0, neginf=0.0)
+
+    q_t = acc.rate_sum / n
+    steps = finite(acc.chain_steps)
+    c1 = STEP_COST * steps / (np.maximum(q_t, 1e-3) * n)
+    mis = STEP_COST * np.maximum(finite(acc.walk_steps) - steps, 0.0) / n
+    c0 = finite(acc.rays) / n + mis
+    c_mean = float(np.mean(c0 + np.where(q <= 0.0, -mis, np.clip(q, 0.0, 1.0) * c1)))
+    mean = finite(acc.sum) / n
+    var_t = np.maximum(finite(acc.sum_sq) / n - mean * mean, 0.0).mean(axis=2) * (n / (n - 1))
+    d_mean = finite(acc.delta_sum) / n
+    var_d = np.maximum(finite(acc.delta_sum_sq) / n - d_mean * d_mean, 0.0).mean(axis=2) * (n / (n - 1))
+    if objective == "relmse":
+        wgt = 1.0 / (_box_blur(mean.mean(axis=2), radius) ** 2 + 0.01)
+    elif objective == "mse":
+        wgt = np.ones(shape)
+    else:
+        raise ValueError(f"objective must be 'mse' or 'relmse', got '{objective}'")
+    v_mean = float(np.mean(wgt * var_t))
+    o = 1.0 + finite(acc.delta_rays) / n
+    b = _box_blur(wgt * var_d, radius)
+    k = np.ones(shape)
+    if v_mean > 0.0 and c_mean > 0.0:
+        k = np.clip(np.rint(np.sqrt(b * c_mean / (o * v_mean))), 1.0, float(k_max))
+        k = np.where(np.isfinite(k), k, 1.0)
+    split = k > 1.0
+    info.update(delta_split_fraction=float(np.mean(split)),
+                delta_split_mean=float(np.mean(k[split])) if np.any(split) else 1.0)
+    return k.astype(np.float32), info
 
 
 def rate_map_grey8(q: np.ndarray, q_low: float = 1.0 / 32) -> np.ndarray:

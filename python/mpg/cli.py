@@ -150,6 +150,10 @@ def _run(args) -> int:
                      f"{100 * st.get('chain_rate_fraction_pt', 0.0):.0f} % to the path tracer"
                      if st.get("chain_rate_mode") == "per-pixel"
                      else f"chain rate {st['chain_rate_mean']:g}")
+            if st.get("delta_split", "off") != "off":
+                rates += (f"; light seen in the glass split in "
+                          f"{100 * st.get('delta_split_fraction', 1.0):.1f} % of the pixels "
+                          f"(mean {st.get('delta_split_mean', 0.0):.1f} paths)")
             print(f"mpg-render: mpg trained {st['training_iterations']} iterations "
                   f"({st['spp_training']} spp, {st['seconds_training']:.1f} s), "
                   f"{st['guide_leaves']} leaves; {rates}", file=sys.stderr)

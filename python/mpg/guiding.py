@@ -14,7 +14,9 @@ import sys
 import time as _time
 from typing import Any
 
-from mpg.chain_rates import CostAccumulator, learn_rates
+import numpy as np
+
+from mpg.chain_rates import CostAccumulator, learn_delta_split, learn_rates
 from mpg.errors import RenderError
 
 def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
@@ -46,6 +48,19 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     if objective not in ("mse", "relmse"):
         raise RenderError(f"chain_rate_objective must be 'mse' or 'relmse', got '{objective}'")
     auto = rate == "auto"   # render() turned any other value into a float or an error
+    # delta_split: "auto" (learned with the rates), or k camera paths per sample
+    # for the light seen through delta scattering only everywhere (1: off)
+    split_given = "delta_split" in params
+    split = params.pop("delta_split", "auto")
+    if split != "auto":
+        try:
+            split = int(split)
+        except (TypeError, ValueError):
+            raise RenderError(f"delta_split must be 'auto' or an integer in [1, 64], got '{split}'") from None
+        if not 1 <= split <= 64:
+            raise RenderError(f"delta_split must be 'auto' or an integer in [1, 64], got {split}")
+    if split == "auto" and split_given and not auto:
+        warnings.append("delta_split=auto needs learned rates (chain_rate=auto); no split")
     if handoff_given and not auto:
         warnings.append("chain_handoff applies to learned rates only (chain_rate=auto); ignored")
     for nm, v in (("chain_rate_min", q_min), ("chain_rate_train", q_train)):
@@ -163,18 +178,28 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         if show:
             sys.stderr.write("\n")
     rate_info: dict[str, Any] = {}
-    qmap = None
+    qmap = kmap = None
     if costs is not None:
         qmap, rate_info = learn_rates(costs, q_min=q_min, objective=objective, handoff=handoff)
         if not rate_info.get("chain_rate_learned"):
             # too little training (< 2 spp): the training rate throughout
             qmap, rate_info = None, {}
+        if split == "auto" and costs.n > 0:
+            qs = qmap if qmap is not None else np.full(costs.delta_rays.shape, float(params["chain_rate"]))
+            kmap, split_info = learn_delta_split(costs, qs, objective=objective)
+            rate_info.update(split_info)
+            if not np.any(kmap > 1):
+                kmap = None
+    if isinstance(split, int) and split > 1:
+        cam = scene.desc.camera
+        kmap = np.full((int(cam.crop[3]), int(cam.crop[2])), float(split), dtype=np.float32)
+        rate_info.update(delta_split_fraction=1.0, delta_split_mean=float(split))
     seconds_training = _time.monotonic() - t0
     rest_spp = None if spp is None else max(1, spp - spp_train)
     rest_t = None if time is None else max(0.05, time - seconds_training)
     img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
-                 chain_rate_map=qmap)
+                 chain_rate_map=qmap, delta_split_map=kmap)
     st: dict[str, Any] = img.stats
     st["warnings"] = list(dict.fromkeys(st.get("warnings", []) + warnings))
     st["integrator"] = "mpg"
@@ -203,5 +228,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # selective activation then stopped
     est = st.get("chain_estimates", 0)
     st["activation_rate"] = ((est - st.get("chain_inactive", 0)) / est) if est else 0.0
+    st["delta_split"] = ("learned" if split == "auto" else str(split)) if kmap is not None else "off"
     img.chain_rate_map = qmap
+    img.delta_split_map = kmap
     return img

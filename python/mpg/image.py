@@ -20,6 +20,8 @@ class Image:
     spp:      samples per pixel that went into it.
     stats:    the render statistics (see docs/design-notes.md).
     chain_rate_map: float32 (H, W), mpg's learned per-pixel chain rates, or None.
+    delta_split_map: float32 (H, W), mpg's camera paths per sample for the light
+              seen through delta scattering only (1: no split), or None.
     """
 
     rgb: np.ndarray
@@ -27,6 +29,7 @@ class Image:
     spp: int
     stats: dict[str, Any] = field(default_factory=dict)
     chain_rate_map: np.ndarray | None = None
+    delta_split_map: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:

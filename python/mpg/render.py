@@ -25,7 +25,8 @@ CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
                 "guide_dir", "training_fraction", "stree_c", "stree_epsilon", "stree_filter",
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
-                "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff"}
+                "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff",
+                "delta_split"}
 BOOL_PARAMS = {"hide_emitters", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "chain_handoff"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
@@ -217,6 +218,7 @@ def render(
     threads: int | None = None,
     progress: bool | None = None,
     chain_rate_map: np.ndarray | None = None,
+    delta_split_map: np.ndarray | None = None,
 ) -> Image:
     """Render `scene` and return an Image.
 
@@ -227,6 +229,9 @@ def render(
     The image is bit-identical for a given (seed, spp) whatever the thread count.
     Ctrl-C stops the render and returns what was accumulated (stats['interrupted']).
     chain_rate_map: per-pixel chain rates (crop height x width), mpg's learned ones.
+    delta_split_map: per-pixel delta-split counts (crop height x width, integers
+      1..64), mpg's learned ones: a pixel's light seen through delta scattering
+      only is averaged over k camera paths per sample.
     """
     from mpg import _core
 
@@ -303,7 +308,8 @@ def render(
             pass_t0 = _time.monotonic()
             try:
                 job = _core.RenderJob(core_scene, integ, k, seed, passes, threads or 0,
-                                      chain_rate_map=chain_rate_map)
+                                      chain_rate_map=chain_rate_map,
+                                      delta_split_map=delta_split_map)
             except ValueError as e:   # a bad chain_rate_map (shape, values)
                 raise RenderError(str(e)) from None
             cancelled_by_time = False
