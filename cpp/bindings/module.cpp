@@ -138,42 +138,28 @@ void check_not_committed(const Scene& s) {
 
 py::dict pass_to_dict(PassResult& r) {
   py::dict out;
-  std::vector<ssize_t> shape = {r.height, r.width, 3};
-  DArray sum(shape), sq(shape);
-  std::copy(r.sum.begin(), r.sum.end(), sum.mutable_data());
-  std::copy(r.sum_sq.begin(), r.sum_sq.end(), sq.mutable_data());
-  out["sum"] = sum;
-  out["sum_sq"] = sq;
+  const std::vector<ssize_t> rgb = {r.height, r.width, 3}, grey = {r.height, r.width};
+  auto put = [&](const char* key, const std::vector<double>& v, const std::vector<ssize_t>& shape) {
+    DArray a(shape);
+    std::copy(v.begin(), v.end(), a.mutable_data());
+    out[key] = a;
+  };
+  put("sum", r.sum, rgb);
+  put("sum_sq", r.sum_sq, rgb);
   out["spp"] = r.spp;
   out["seconds"] = r.seconds;
   out["cancelled"] = r.cancelled;
-  if (!r.chain_m2.empty()) {
-    std::vector<ssize_t> shape2 = {r.height, r.width};
-    DArray m2(shape2), steps(shape2), walks(shape2), rays(shape2);
-    std::copy(r.chain_m2.begin(), r.chain_m2.end(), m2.mutable_data());
-    std::copy(r.chain_steps.begin(), r.chain_steps.end(), steps.mutable_data());
-    std::copy(r.walk_steps.begin(), r.walk_steps.end(), walks.mutable_data());
-    std::copy(r.rays.begin(), r.rays.end(), rays.mutable_data());
-    out["chain_m2"] = m2;
-    out["chain_steps"] = steps;
-    out["walk_steps"] = walks;
-    out["rays"] = rays;
-    DArray asum(shape), asq(shape);
-    std::copy(r.alt_sum.begin(), r.alt_sum.end(), asum.mutable_data());
-    std::copy(r.alt_sum_sq.begin(), r.alt_sum_sq.end(), asq.mutable_data());
-    out["alt_sum"] = asum;
-    out["alt_sum_sq"] = asq;
-    DArray hits(shape2);
-    std::copy(r.alt_hits.begin(), r.alt_hits.end(), hits.mutable_data());
-    out["alt_hits"] = hits;
-    DArray drays(shape2);
-    std::copy(r.delta_rays.begin(), r.delta_rays.end(), drays.mutable_data());
-    out["delta_rays"] = drays;
-    DArray dsum(shape), dsq(shape);
-    std::copy(r.delta_sum.begin(), r.delta_sum.end(), dsum.mutable_data());
-    std::copy(r.delta_sum_sq.begin(), r.delta_sum_sq.end(), dsq.mutable_data());
-    out["delta_sum"] = dsum;
-    out["delta_sum_sq"] = dsq;
+  if (!r.chain_m2.empty()) {   // PassConfig::record_costs
+    put("chain_m2", r.chain_m2, grey);
+    put("chain_steps", r.chain_steps, grey);
+    put("walk_steps", r.walk_steps, grey);
+    put("rays", r.rays, grey);
+    put("alt_sum", r.alt_sum, rgb);
+    put("alt_sum_sq", r.alt_sum_sq, rgb);
+    put("alt_hits", r.alt_hits, grey);
+    put("delta_rays", r.delta_rays, grey);
+    put("delta_sum", r.delta_sum, rgb);
+    put("delta_sum_sq", r.delta_sum_sq, rgb);
   }
   auto st = r.stats.to_map();
   for (size_t i = 1; i < r.stats.walk_failures.size(); ++i)
@@ -183,6 +169,14 @@ py::dict pass_to_dict(PassResult& r) {
   buf->v = std::move(r.stats.subpaths);
   out["subpaths"] = buf;
   return out;
+}
+
+// A per-pixel map for a render pass (crop height x width floats), copied.
+std::shared_ptr<std::vector<float>> pixel_map(const py::object& o, const Camera& c, const char* name) {
+  const FArray a = py::cast<FArray>(o);
+  if (a.ndim() != 2 || a.shape(0) != c.crop_h || a.shape(1) != c.crop_w)
+    throw std::invalid_argument(std::string(name) + " must have shape (crop height, crop width)");
+  return std::make_shared<std::vector<float>>(a.data(), a.data() + a.size());
 }
 
 WalkConfig walk_config(const py::dict& p);
@@ -632,11 +626,7 @@ PYBIND11_MODULE(_core, m) {
         PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
         cfg.record_costs = record_costs;
         if (!chain_rate_map.is_none()) {
-          const FArray a = py::cast<FArray>(chain_rate_map);
-          const Camera& c = scene->camera;
-          if (a.ndim() != 2 || a.shape(0) != c.crop_h || a.shape(1) != c.crop_w)
-            throw std::invalid_argument("chain_rate_map must have shape (crop height, crop width)");
-          auto m = std::make_shared<std::vector<float>>(a.data(), a.data() + a.size());
+          auto m = pixel_map(chain_rate_map, scene->camera, "chain_rate_map");
           bool zero = false;
           for (float q : *m) {
             if (!(q == 0.f || (q >= 1e-3f && q <= 1.f)))
@@ -651,11 +641,7 @@ PYBIND11_MODULE(_core, m) {
           cfg.chain_rate_map = std::move(m);
         }
         if (!delta_split_map.is_none()) {
-          const FArray a = py::cast<FArray>(delta_split_map);
-          const Camera& c = scene->camera;
-          if (a.ndim() != 2 || a.shape(0) != c.crop_h || a.shape(1) != c.crop_w)
-            throw std::invalid_argument("delta_split_map must have shape (crop height, crop width)");
-          auto m = std::make_shared<std::vector<float>>(a.data(), a.data() + a.size());
+          auto m = pixel_map(delta_split_map, scene->camera, "delta_split_map");
           for (float k : *m)
             if (!(k >= 1.f && k <= 64.f && k == std::floor(k)))
               throw std::invalid_argument("delta_split_map values must be integers in [1, 64]");

@@ -75,6 +75,13 @@ void RenderJob::run() {
     _MM_SET_DENORMALS_ZERO_MODE(_MM_DENORMALS_ZERO_ON);
     Stats& st = stats[size_t(tid)];
     st.cancel = &cancel_;
+    // A camera ray through film pixel (fx, fy), its position drawn from the pixel filter.
+    auto camera_ray = [&](PCG32& rng, int fx, int fy, Vec3& o, Vec3& d, float& tmin, float& tmax) {
+      const float ox = cam.filter.sample(rng.next_float());
+      const float oy = cam.filter.sample(rng.next_float());
+      cam.generate_ray(Vec2(float(fx) + 0.5f + ox, float(fy) + 0.5f + oy), o, d, tmin, tmax);
+      st.camera_rays++;
+    };
     for (;;) {
       if (cancel_.load(std::memory_order_relaxed)) return;
       const int tile = next_tile.fetch_add(1);
@@ -100,12 +107,9 @@ void RenderJob::run() {
             // estimates took seconds).
             if (cancel_.load(std::memory_order_relaxed)) return;
             PCG32 rng = make_stream(cfg_.seed, cfg_.pass, pixel, uint64_t(k));
-            const float ox = cam.filter.sample(rng.next_float());
-            const float oy = cam.filter.sample(rng.next_float());
             Vec3 o, d;
             float tmin, tmax;
-            cam.generate_ray(Vec2(float(fx) + 0.5f + ox, float(fy) + 0.5f + oy), o, d, tmin, tmax);
-            st.camera_rays++;
+            camera_ray(rng, fx, fy, o, d, tmin, tmax);
             st.sample_alt_delta = Color(0.f);
             st.sample_owned_hit = false;
             st.sample_delta_L = Color(0.f);
@@ -117,12 +121,9 @@ void RenderJob::run() {
               // random stream).
               Color D = st.sample_delta_L;
               for (int j = 1; j < ksplit; ++j) {
-                const float ex = cam.filter.sample(rng.next_float());
-                const float ey = cam.filter.sample(rng.next_float());
                 Vec3 o2, d2;
                 float tmin2, tmax2;
-                cam.generate_ray(Vec2(float(fx) + 0.5f + ex, float(fy) + 0.5f + ey), o2, d2, tmin2, tmax2);
-                st.camera_rays++;
+                camera_ray(rng, fx, fy, o2, d2, tmin2, tmax2);
                 st.delta_split_paths++;
                 D += integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st);
               }

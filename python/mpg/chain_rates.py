@@ -122,6 +122,40 @@ def _box_blur(a: np.ndarray, r: int, nonneg: bool = True, total: bool = False) -
     return np.maximum(tot / cnt, 0.0) if nonneg else tot / cnt
 
 
+def _finite(a) -> np.ndarray:
+    """A rejected sample's NaN/Inf square must not poison the statistics."""
+    return np.nan_to_num(np.asarray(a, dtype=float), nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def _sample_variance(s, s2, n: float) -> np.ndarray:
+    """Per-pixel variance of one sample (mean over RGB) from sums and squares of n samples."""
+    m = _finite(s) / n
+    return np.maximum(_finite(s2) / n - m * m, 0.0).mean(axis=2) * (n / (n - 1))
+
+
+def _costs(acc: "CostAccumulator", n: float) -> tuple:
+    """(q_t, chain steps, c1, mis, c0) per pixel: the training passes' mean
+    rate, the walk steps inside chain estimates, the chain cost per sample at
+    q = 1, the path tracer's MIS-round cost and the rest of a sample's cost
+    (ray units)."""
+    q_t = acc.rate_sum / n
+    steps = _finite(acc.chain_steps)
+    c1 = STEP_COST * steps / (np.maximum(q_t, 1e-3) * n)
+    mis = STEP_COST * np.maximum(_finite(acc.walk_steps) - steps, 0.0) / n
+    c0 = _finite(acc.rays) / n + mis
+    return q_t, steps, c1, mis, c0
+
+
+def _weights(mean: np.ndarray, objective: str, radius: int) -> np.ndarray:
+    """The objective's per-pixel weight: 1 (mse) or 1 / (I^2 + 0.01), I the
+    (blurred) training mean, as metrics.relmse weighs the error (relmse)."""
+    if objective == "relmse":
+        return 1.0 / (_box_blur(mean.mean(axis=2), radius) ** 2 + 0.01)
+    if objective == "mse":
+        return np.ones(mean.shape[:2])
+    raise ValueError(f"objective must be 'mse' or 'relmse', got '{objective}'")
+
+
 def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
                 iterations: int = 50, objective: str = "relmse",
                 handoff: bool = True, min_hits: float = HANDOFF_MIN_HITS) -> tuple[np.ndarray, dict]:
@@ -143,27 +177,15 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
         return np.ones(shape, dtype=np.float32), info
     n = float(acc.n)
 
-    def finite(a):   # a rejected sample's NaN/Inf square must not poison the rates
-        return np.nan_to_num(np.asarray(a, dtype=float), nan=0.0, posinf=0.0, neginf=0.0)
-
-    q_t = acc.rate_sum / n                                # the training passes' mean rate per pixel
+    finite = _finite
     m2_raw = finite(acc.chain_m2) / n                     # E[sum_j X_j^2] per sample (unbiased)
-    steps = finite(acc.chain_steps)
-    c1 = STEP_COST * steps / (np.maximum(q_t, 1e-3) * n)  # chain cost per sample at q = 1 (ray units)
-    # the path tracer's MIS rounds (pt_weight's walks): part of c0, gone at rate 0
-    mis = STEP_COST * np.maximum(finite(acc.walk_steps) - steps, 0.0) / n
-    c0 = finite(acc.rays) / n + mis
+    # q_t: the training passes' mean rate per pixel; c1: chain cost per sample at
+    # q = 1 (ray units); mis: the path tracer's MIS rounds (pt_weight's walks),
+    # part of c0, gone at rate 0
+    q_t, steps, c1, mis, c0 = _costs(acc, n)
     mean = finite(acc.sum) / n
-    sum_sq = finite(acc.sum_sq)
-    var_t = np.maximum(sum_sq / n - mean * mean, 0.0).mean(axis=2) * (n / (n - 1))
-    # objective "relmse": each pixel's variance weighted by 1 / (I^2 + 0.01), I
-    # its (blurred) training mean, as metrics.relmse weighs the error
-    if objective == "relmse":
-        wgt = 1.0 / (_box_blur(mean.mean(axis=2), radius) ** 2 + 0.01)
-    elif objective == "mse":
-        wgt = np.ones(shape)
-    else:
-        raise ValueError(f"objective must be 'mse' or 'relmse', got '{objective}'")
+    var_t = _sample_variance(acc.sum, acc.sum_sq, n)
+    wgt = _weights(mean, objective, radius)
     m2 = m2_raw * wgt
     # V1 = V(q_t) - (1/q_t - 1) M: only its image mean enters Eq. (1)
     v1_mean = max(float(np.mean(wgt * var_t - (1.0 / q_t - 1.0) * m2)), 0.0)
@@ -280,27 +302,13 @@ def learn_delta_split(acc: CostAccumulator, q: np.ndarray, radius: int = 3, obje
         return np.ones(shape, dtype=np.float32), info
     n = float(acc.n)
 
-    def finite(a):
-        return np.nan_to_num(np.asarray(a, dtype=float), nan=0.0, posinf=0.0, neginf=0.0)
-
-    q_t = acc.rate_sum / n
-    steps = finite(acc.chain_steps)
-    c1 = STEP_COST * steps / (np.maximum(q_t, 1e-3) * n)
-    mis = STEP_COST * np.maximum(finite(acc.walk_steps) - steps, 0.0) / n
-    c0 = finite(acc.rays) / n + mis
+    _, _, c1, mis, c0 = _costs(acc, n)
     c_mean = float(np.mean(c0 + np.where(q <= 0.0, -mis, np.clip(q, 0.0, 1.0) * c1)))
-    mean = finite(acc.sum) / n
-    var_t = np.maximum(finite(acc.sum_sq) / n - mean * mean, 0.0).mean(axis=2) * (n / (n - 1))
-    d_mean = finite(acc.delta_sum) / n
-    var_d = np.maximum(finite(acc.delta_sum_sq) / n - d_mean * d_mean, 0.0).mean(axis=2) * (n / (n - 1))
-    if objective == "relmse":
-        wgt = 1.0 / (_box_blur(mean.mean(axis=2), radius) ** 2 + 0.01)
-    elif objective == "mse":
-        wgt = np.ones(shape)
-    else:
-        raise ValueError(f"objective must be 'mse' or 'relmse', got '{objective}'")
+    var_t = _sample_variance(acc.sum, acc.sum_sq, n)
+    var_d = _sample_variance(acc.delta_sum, acc.delta_sum_sq, n)
+    wgt = _weights(_finite(acc.sum) / n, objective, radius)
     v_mean = float(np.mean(wgt * var_t))
-    o = 1.0 + finite(acc.delta_rays) / n
+    o = 1.0 + _finite(acc.delta_rays) / n
     b = _box_blur(wgt * var_d, radius)
     k = np.ones(shape)
     if v_mean > 0.0 and c_mean > 0.0:
