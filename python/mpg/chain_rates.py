@@ -69,6 +69,10 @@ HANDOFF_NEGLIGIBLE = 1e-3
 class CostAccumulator:
     """Per-pixel sums over training passes (crop height x width)."""
 
+    # the arrays a record_costs pass returns under these names, summed as they are
+    PASS_SUMS = ("sum", "sum_sq", "chain_m2", "chain_steps", "walk_steps", "rays", "alt_sum",
+                 "alt_sum_sq", "alt_hits", "delta_rays", "delta_sum", "delta_sum_sq")
+
     def __init__(self, shape: tuple[int, int]):
         self.n = 0
         self.sum = np.zeros(shape + (3,))
@@ -89,18 +93,8 @@ class CostAccumulator:
 
     def add(self, result: dict, spp: int, q: float | np.ndarray) -> None:
         self.n += spp
-        self.sum += result["sum"]
-        self.sum_sq += result["sum_sq"]
-        self.chain_m2 += result["chain_m2"]
-        self.chain_steps += result["chain_steps"]
-        self.walk_steps += result["walk_steps"]
-        self.rays += result["rays"]
-        self.alt_sum += result["alt_sum"]
-        self.alt_sum_sq += result["alt_sum_sq"]
-        self.alt_hits += result["alt_hits"]
-        self.delta_rays += result["delta_rays"]
-        self.delta_sum += result["delta_sum"]
-        self.delta_sum_sq += result["delta_sum_sq"]
+        for key in self.PASS_SUMS:
+            getattr(self, key)[...] += result[key]
         self.rate_sum += np.broadcast_to(np.asarray(q, dtype=float), self.rate_sum.shape) * spp
 
 
