@@ -233,3 +233,61 @@ def test_uniform_triangle():
     area = np.where(I + J < n - 1, 1.0, np.where(I + J == n - 1, 0.5, 0.0)) / n ** 2
     _, _, p, msg = chi2_test(obs, (area / 0.5).ravel() * N, N)
     assert p > ALPHA, msg
+
+
+# --- DiscreteDistribution (cpp/core/distribution.h) --------------------------
+# Tables of 16 bins and more search only the bins a guide table allows; the
+# index and the rescaled u must be those of the inverse CDF over the whole table.
+
+def _discrete_reference(weights: np.ndarray, u: np.ndarray):
+    """The inverse CDF as distribution.h defines it, in numpy (double CDF)."""
+    w = np.where(np.isfinite(weights) & (weights > 0), weights.astype(np.float64), 0.0)
+    cdf = np.concatenate([[0.0], np.cumsum(w)])
+    cdf = cdf / cdf[-1]
+    cdf[-1] = 1.0
+    pmf = (cdf[1:] - cdf[:-1]).astype(np.float32)
+    x = u.astype(np.float64)
+    idx = np.minimum(np.searchsorted(cdf[1:], x, side="right"), len(w) - 1)
+    for k in range(len(idx)):   # skip zero-probability bins, as the C++ does
+        while pmf[idx[k]] == 0.0 and idx[k] + 1 < len(w):
+            idx[k] += 1
+    lo, width = cdf[idx], cdf[idx + 1] - cdf[idx]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where(width > 0, np.clip((x - lo) / width, 0.0, np.float32(1 - 2**-24)), 0.0)
+    return idx, r.astype(np.float32)
+
+
+@pytest.mark.parametrize("size", [1, 5, 15, 16, 17, 256, 1000, 4096])
+@pytest.mark.parametrize("kind", ["equal", "random", "zeros", "spiky"])
+def test_discrete_sample_is_the_inverse_cdf(size, kind):
+    rng = np.random.default_rng(size * 31 + len(kind))
+    if kind == "equal":
+        w = np.ones(size, np.float32)
+    elif kind == "random":
+        w = rng.random(size).astype(np.float32)
+    elif kind == "zeros":   # runs of empty bins, a NaN and an Inf among them
+        w = (rng.random(size) * (rng.random(size) < 0.3)).astype(np.float32)
+        w[0] = 0.0
+        if size > 3:
+            w[1], w[2] = np.nan, np.inf
+        if not np.any(w[np.isfinite(w)] > 0):
+            w[-1] = 1.0
+    else:                   # a few bins carry almost all the mass
+        w = (10.0 ** rng.uniform(-8, 8, size)).astype(np.float32)
+    # random u, the bucket edges j/m as floats and their neighbours, 0 and 1-
+    edges = (np.arange(size + 1) / size).astype(np.float32)
+    u = np.concatenate([rng.random(20000).astype(np.float32), edges,
+                        np.nextafter(edges, np.float32(0)), np.nextafter(edges, np.float32(1)),
+                        [0.0, np.float32(1 - 2**-24)]]).astype(np.float32)
+    u = u[(u >= 0) & (u < 1)]
+    idx, r = _core.discrete_sample(w, u)
+    ref_idx, ref_r = _discrete_reference(w, u)
+    np.testing.assert_array_equal(idx, ref_idx)
+    np.testing.assert_array_equal(r, ref_r)
+
+
+def test_discrete_sample_errors():
+    with pytest.raises(ValueError, match="positive finite sum"):
+        _core.discrete_sample(np.zeros(20, np.float32), np.array([0.5], np.float32))
+    with pytest.raises(ValueError, match="u must lie"):
+        _core.discrete_sample(np.ones(20, np.float32), np.array([1.0], np.float32))

@@ -824,6 +824,23 @@ PYBIND11_MODULE(_core, m) {
       });
   m.attr("SUBPATH_SAMPLE_BYTES") = sizeof(SubpathSample);
   m.def("warp_sample", &warp_sample, py::arg("name"), py::arg("u"), py::arg("param") = 0.f);
+  // DiscreteDistribution::sample on weights for each u: (index, rescaled u) (tests).
+  m.def("discrete_sample", [](const FArray& weights, const FArray& u) {
+    if (weights.ndim() != 1 || u.ndim() != 1) throw std::invalid_argument("weights and u must be 1-D");
+    const std::vector<float> w(weights.data(), weights.data() + weights.shape(0));
+    const DiscreteDistribution d(w);
+    if (d.empty()) throw std::invalid_argument("weights must have a positive finite sum");
+    const ssize_t n = u.shape(0);
+    py::array_t<int64_t> idx(n);
+    FArray out(n);
+    for (ssize_t i = 0; i < n; ++i) {
+      float x = u.data()[i];
+      if (!(x >= 0.f && x < 1.f)) throw std::invalid_argument("u must lie in [0, 1)");
+      idx.mutable_data()[i] = int64_t(d.sample(x));
+      out.mutable_data()[i] = x;
+    }
+    return py::make_tuple(idx, out);
+  }, py::arg("weights"), py::arg("u"));
   m.def("warp_pdf", &warp_pdf, py::arg("name"), py::arg("v"), py::arg("param") = 0.f);
   m.def("bsdf_sample", [](const Scene& s, int id, py::object wi_o, const FArray& u) {
     const Vec3 wi = glm::normalize(vec3(wi_o));

@@ -3,6 +3,7 @@
 #pragma once
 
 #include <algorithm>
+#include <cstdint>
 #include <vector>
 
 #include "core/math.h"
@@ -31,6 +32,7 @@ class DiscreteDistribution {
       }
       cdf_.back() = 1.0;
     }
+    build_guide();
   }
 
   size_t size() const { return pmf_.size(); }
@@ -39,9 +41,21 @@ class DiscreteDistribution {
   float pmf(size_t i) const { return i < pmf_.size() ? pmf_[i] : 0.f; }
 
   // Returns index; `u` is rescaled to a fresh uniform number in [0,1).
+  // The inverse CDF by binary search; with a guide table (Chen & Asau's
+  // cutpoint method) the search runs only over the bins bucket j = floor(u m)
+  // can reach (and one on each side), which gives the same index as a search
+  // over the whole table.
   size_t sample(float& u) const {
     const double x = u;
-    auto it = std::upper_bound(cdf_.begin() + 1, cdf_.end(), x);
+    auto first = cdf_.begin() + 1, last = cdf_.end();
+    if (!guide_.empty()) {
+      const size_t m = guide_.size() - 1;
+      // one bucket of slack on each side: x * m and j / m are rounded
+      const size_t j = std::min(size_t(x * double(m)), m - 1);
+      first = cdf_.begin() + 1 + guide_[j > 0 ? j - 1 : 0];
+      last = cdf_.begin() + 1 + std::min<size_t>(size_t(guide_[std::min(j + 2, m)]) + 1, pmf_.size());
+    }
+    auto it = std::upper_bound(first, last, x);
     size_t i = size_t(std::distance(cdf_.begin() + 1, it));
     i = std::min(i, pmf_.size() - 1);
     // skip zero-probability bins at the end of a run of equal cdf values
@@ -52,8 +66,27 @@ class DiscreteDistribution {
   }
 
  private:
+  // Tables this small are searched whole (a few compares; no extra memory in
+  // the many small per-leaf distributions of the guiding state).
+  static constexpr size_t kGuideMin = 16;
+  // guide_[j] = the index upper_bound(j / m) gives (m = guide_.size() - 1 =
+  // number of bins): for u in [j/m, (j+1)/m) the index lies in
+  // [guide_[j], guide_[j + 1]].
+  void build_guide() {
+    guide_.clear();
+    const size_t n = pmf_.size();
+    if (!(sum_ > 0.0) || n < kGuideMin) return;
+    guide_.resize(n + 1);
+    size_t i = 0;
+    for (size_t j = 0; j <= n; ++j) {
+      const double x = double(j) / double(n);
+      while (i < n && cdf_[i + 1] <= x) ++i;
+      guide_[j] = uint32_t(i);
+    }
+  }
   std::vector<float> pmf_;
   std::vector<double> cdf_;
+  std::vector<uint32_t> guide_;
   double sum_ = 0.0;
 };
 
