@@ -620,7 +620,7 @@ PYBIND11_MODULE(_core, m) {
   py::class_<RenderJob, std::shared_ptr<RenderJob>>(m, "RenderJob")
       .def(py::init([](std::shared_ptr<Scene> scene, std::shared_ptr<Integrator> integ, int spp, uint64_t seed,
                        uint64_t pass, int threads, py::object chain_rate_map, bool record_costs,
-                       py::object delta_split_map) {
+                       py::object delta_split_map, py::object pixel_split_map) {
         if (!scene->committed()) throw std::runtime_error("scene not committed");
         if (spp < 1) throw std::invalid_argument("spp must be >= 1");
         PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
@@ -650,12 +650,21 @@ PYBIND11_MODULE(_core, m) {
             throw std::invalid_argument("delta_split_map needs the integrator's camera_delta = all");
           cfg.delta_split_map = std::move(m);
         }
+        if (!pixel_split_map.is_none()) {
+          auto m = pixel_map(pixel_split_map, scene->camera, "pixel_split_map");
+          for (float k : *m)
+            if (!(k >= 1.f && k <= 64.f && k == std::floor(k)))
+              throw std::invalid_argument("pixel_split_map values must be integers in [1, 64]");
+          if (record_costs)   // the per-sample records would see the last camera sample only
+            throw std::invalid_argument("pixel_split_map cannot be used with record_costs");
+          cfg.pixel_split_map = std::move(m);
+        }
         auto job = std::make_shared<RenderJob>(scene, integ, cfg);
         job->start();
         return job;
       }), py::arg("scene"), py::arg("integrator"), py::arg("spp"), py::arg("seed") = 0, py::arg("pass_index") = 0,
          py::arg("threads") = 0, py::arg("chain_rate_map") = py::none(), py::arg("record_costs") = false,
-         py::arg("delta_split_map") = py::none())
+         py::arg("delta_split_map") = py::none(), py::arg("pixel_split_map") = py::none())
       .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
       .def("cancel", &RenderJob::cancel)
       .def_property_readonly("progress", &RenderJob::progress)

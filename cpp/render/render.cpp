@@ -64,6 +64,8 @@ void RenderJob::run() {
   if (qmap && qmap->size() != size_t(W) * H) qmap = nullptr;  // checked by the bindings
   const std::vector<float>* kmap = cfg_.delta_split_map.get();
   if (kmap && kmap->size() != size_t(W) * H) kmap = nullptr;
+  const std::vector<float>* smap = cfg_.pixel_split_map.get();
+  if (smap && smap->size() != size_t(W) * H) smap = nullptr;
   int nthreads = cfg_.threads > 0 ? cfg_.threads : int(std::thread::hardware_concurrency());
   nthreads = std::max(1, std::min(nthreads, tiles_total_));
   std::atomic<int> next_tile{0};
@@ -98,6 +100,7 @@ void RenderJob::run() {
           st.pixel_chain_m2 = 0.0;
           const int ksplit = kmap ? std::max(1, int((*kmap)[size_t(y) * W + x])) : 1;
           st.split_delta = ksplit > 1;
+          const int kpix = smap ? std::max(1, int((*smap)[size_t(y) * W + x])) : 1;
           const uint64_t steps0 = st.chain_steps, walk0 = st.walk_steps, rays0 = st.rays + st.shadow_rays + st.camera_rays;
           const uint64_t delta0 = st.delta_prefix_rays;
           for (int k = 0; k < cfg_.spp; ++k) {
@@ -107,28 +110,37 @@ void RenderJob::run() {
             // estimates took seconds).
             if (cancel_.load(std::memory_order_relaxed)) return;
             PCG32 rng = make_stream(cfg_.seed, cfg_.pass, pixel, uint64_t(k));
-            Vec3 o, d;
-            float tmin, tmax;
-            camera_ray(rng, fx, fy, o, d, tmin, tmax);
-            st.sample_alt_delta = Color(0.f);
-            st.sample_owned_hit = false;
-            st.sample_delta_L = Color(0.f);
-            Color L = integrator_->Li(scene, o, d, tmin, tmax, rng, st);
-            if (ksplit > 1) {
-              // The light seen through delta scattering only, left out of L:
-              // the mean of this path's and k - 1 more camera paths' (each an
-              // unbiased estimate of it, the same pixel filter, the sample's own
-              // random stream).
-              Color D = st.sample_delta_L;
-              for (int j = 1; j < ksplit; ++j) {
-                Vec3 o2, d2;
-                float tmin2, tmax2;
-                camera_ray(rng, fx, fy, o2, d2, tmin2, tmax2);
-                st.delta_split_paths++;
-                D += integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st);
+            // The pixel split: the sample is the mean of kpix camera samples
+            // drawn one after the other from the sample's own random stream
+            // (kpix = 1: the plain sample, bit for bit).
+            Color L(0.f);
+            for (int sub = 0; sub < kpix; ++sub) {
+              Vec3 o, d;
+              float tmin, tmax;
+              camera_ray(rng, fx, fy, o, d, tmin, tmax);
+              st.sample_alt_delta = Color(0.f);
+              st.sample_owned_hit = false;
+              st.sample_delta_L = Color(0.f);
+              Color Ls = integrator_->Li(scene, o, d, tmin, tmax, rng, st);
+              if (ksplit > 1) {
+                // The light seen through delta scattering only, left out of Ls:
+                // the mean of this path's and k - 1 more camera paths' (each an
+                // unbiased estimate of it, the same pixel filter, the sample's own
+                // random stream).
+                Color D = st.sample_delta_L;
+                for (int j = 1; j < ksplit; ++j) {
+                  Vec3 o2, d2;
+                  float tmin2, tmax2;
+                  camera_ray(rng, fx, fy, o2, d2, tmin2, tmax2);
+                  st.delta_split_paths++;
+                  D += integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st);
+                }
+                Ls += D * (1.f / float(ksplit));
               }
-              L += D * (1.f / float(ksplit));
+              L += Ls;
+              if (sub > 0) st.pixel_split_samples++;
             }
+            if (kpix > 1) L *= 1.f / float(kpix);
             st.samples++;
             const bool finite = std::isfinite(L.x) && std::isfinite(L.y) && std::isfinite(L.z);
             const bool ok = finite && L.x >= 0.f && L.y >= 0.f && L.z >= 0.f;

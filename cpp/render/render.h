@@ -52,6 +52,10 @@ struct PassConfig {
   // null (1 everywhere): each sample's light seen through delta scattering
   // only is averaged with k - 1 extra camera paths of that light alone.
   std::shared_ptr<const std::vector<float>> delta_split_map;
+  // Per-pixel sample split k >= 1 (crop height x width, integers), or null (1
+  // everywhere): each sample of the pixel is the mean of k independent camera
+  // samples (camera ray, Li, delta split), so its variance is 1/k of one.
+  std::shared_ptr<const std::vector<float>> pixel_split_map;
   bool record_costs = false;
 };
 

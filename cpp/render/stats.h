@@ -56,6 +56,7 @@ struct Stats {
   uint64_t path_vertices = 0;
   uint64_t delta_prefix_rays = 0;    // rays traced after delta scattering only (camera rays not counted)
   uint64_t delta_split_paths = 0;    // extra camera paths of the light seen through delta scattering
+  uint64_t pixel_split_samples = 0;  // extra camera samples of the pixel split (PassConfig::pixel_split_map)
   // specular chains (sms, sms_star)
   uint64_t chain_estimates = 0;      // separators where a chain was attempted
   uint64_t chain_converged = 0;      // first trials that converged
@@ -86,6 +87,7 @@ struct Stats {
     rejected_negative += o.rejected_negative; depth_capped += o.depth_capped;
     path_vertices += o.path_vertices;
     delta_prefix_rays += o.delta_prefix_rays; delta_split_paths += o.delta_split_paths;
+    pixel_split_samples += o.pixel_split_samples;
     chain_estimates += o.chain_estimates; chain_converged += o.chain_converged;
     chain_contributions += o.chain_contributions; bernoulli_trials += o.bernoulli_trials;
     bernoulli_capped += o.bernoulli_capped; owned_dropped += o.owned_dropped; owned_shared += o.owned_shared; chain_ns += o.chain_ns;
@@ -109,6 +111,7 @@ struct Stats {
             {"rejected_negative", double(rejected_negative)},
             {"depth_capped", double(depth_capped)}, {"path_vertices", double(path_vertices)},
             {"delta_prefix_rays", double(delta_prefix_rays)}, {"delta_split_paths", double(delta_split_paths)},
+            {"pixel_split_samples", double(pixel_split_samples)},
             {"chain_estimates", double(chain_estimates)}, {"chain_converged", double(chain_converged)},
             {"chain_contributions", double(chain_contributions)},
             {"bernoulli_trials", double(bernoulli_trials)}, {"bernoulli_capped", double(bernoulli_capped)},

@@ -324,3 +324,67 @@ def rate_map_grey8(q: np.ndarray, q_low: float = 1.0 / 32) -> np.ndarray:
     out = np.repeat(np.round(g * 255.0).astype(np.uint8)[..., None], 3, axis=2)
     out[q <= 0.0] = (40, 90, 220)
     return out
+
+
+# The pixel split (learn_pixel_split): at most this many camera samples averaged per sample.
+PIXEL_SPLIT_MAX = 16
+
+
+def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radius: int = 1,
+                      objective: str = "mse", k_max: int = PIXEL_SPLIT_MAX,
+                      iterations: int = 30) -> tuple[np.ndarray, dict]:
+    """Per-pixel count k of camera samples averaged in each sample of the pixel
+    (design-notes "Splitting the pixels").
+
+    With the learned rates q and delta splits kd, a sample of pixel p has
+    variance V_p and cost C_p; k of them averaged, V_p / k at k C_p. Minimising
+    F = mean(w V / k) mean(k C), the same F as learn_rates and
+    learn_delta_split, over each k_p gives
+
+        k_p = sqrt(w_p V_p mean(k C) / (C_p mean(w V / k)))          (Eq. 4)
+
+    a fixed point, rounded, in [1, k_max]. From the training samples (rate q_t,
+    no splits): V_p = var_t + (1/q - 1/q_t) M at q > 0, the path tracer
+    alone's E[(A - I)^2] at q = 0, less (1 - 1/kd) of the light seen through
+    delta scattering only; C_p = c0 + q c1 (c0 - mis at q = 0) + (kd - 1) o.
+    w V is averaged over the (2 radius + 1)^2 window. This is adaptive
+    sampling with a map fixed before the render: any fixed k >= 1 leaves the
+    image unbiased, and where training saw no variance k = 1 (a firefly no
+    training sample saw is not split)."""
+    shape = acc.delta_rays.shape
+    info: dict = {}
+    if acc.n < 2:
+        return np.ones(shape, dtype=np.float32), info
+    n = float(acc.n)
+    q = np.asarray(q, dtype=float)
+    kd = np.maximum(np.asarray(kd, dtype=float), 1.0)
+    q_t, _, c1, mis, c0 = _costs(acc, n)
+    mean = _finite(acc.sum) / n
+    var_t = _sample_variance(acc.sum, acc.sum_sq, n)
+    m2 = _finite(acc.chain_m2) / n
+    a_mean = _finite(acc.alt_sum) / n
+    alt_mse = np.maximum(_finite(acc.alt_sum_sq) / n - 2.0 * a_mean * mean + mean * mean,
+                         0.0).mean(axis=2) * (n / (n - 1))
+    var_d = _sample_variance(acc.delta_sum, acc.delta_sum_sq, n)
+    qc = np.clip(q, 1e-3, 1.0)
+    v = np.where(q > 0.0, var_t + (1.0 / qc - 1.0 / np.maximum(q_t, 1e-3)) * m2, alt_mse)
+    v = np.maximum(v - (1.0 - 1.0 / kd) * var_d, 0.0)
+    o = 1.0 + _finite(acc.delta_rays) / n
+    c = c0 + np.where(q > 0.0, qc * c1, -mis) + (kd - 1.0) * o
+    c = np.maximum(c, 1e-6)
+    wv = _box_blur(_weights(mean, objective, radius) * v, radius)
+    k = np.ones(shape)
+    for _ in range(iterations):
+        c_mean, v_mean = float(np.mean(k * c)), float(np.mean(wv / k))
+        if not (c_mean > 0.0 and v_mean > 0.0):
+            break
+        k_new = np.clip(np.rint(np.sqrt(wv * c_mean / (c * v_mean))), 1.0, float(k_max))
+        k_new = np.where(np.isfinite(k_new), k_new, 1.0)
+        if np.array_equal(k_new, k):
+            break
+        k = k_new
+    split = k > 1.0
+    info.update(pixel_split_fraction=float(np.mean(split)),
+                pixel_split_mean=float(np.mean(k[split])) if np.any(split) else 1.0,
+                pixel_split_cost=float(np.mean(k * c) / np.mean(c)))
+    return k.astype(np.float32), info

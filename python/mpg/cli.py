@@ -154,6 +154,10 @@ def _run(args) -> int:
                 rates += (f"; light seen in the glass split in "
                           f"{100 * st.get('delta_split_fraction', 1.0):.1f} % of the pixels "
                           f"(mean {st.get('delta_split_mean', 0.0):.1f} paths)")
+            if st.get("pixel_split", "off") != "off":
+                rates += (f"; pixels split ({st['pixel_split']}) in "
+                          f"{100 * st.get('pixel_split_fraction', 1.0):.1f} % of the pixels "
+                          f"(mean {st.get('pixel_split_mean', 0.0):.1f} samples)")
             print(f"mpg-render: mpg trained {st['training_iterations']} iterations "
                   f"({st['spp_training']} spp, {st['seconds_training']:.1f} s), "
                   f"{st['guide_leaves']} leaves; {rates}", file=sys.stderr)

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from mpg.chain_rates import CostAccumulator, learn_delta_split, learn_rates
+from mpg.chain_rates import CostAccumulator, learn_delta_split, learn_pixel_split, learn_rates
 from mpg.errors import RenderError
 
 def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
@@ -59,6 +59,20 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             raise RenderError(f"delta_split must be 'auto' or an integer in [1, 64], got '{split}'") from None
         if not 1 <= split <= 64:
             raise RenderError(f"delta_split must be 'auto' or an integer in [1, 64], got {split}")
+    # pixel_split: "off" (default), "mse" or "relmse" (learned with the rates for
+    # that error: each sample of a pixel the mean of k camera samples), or k
+    # everywhere (mpg.chain_rates.learn_pixel_split)
+    psplit = str(params.pop("pixel_split", "off"))
+    if psplit not in ("off", "mse", "relmse"):
+        try:
+            psplit = int(psplit)
+        except ValueError:
+            raise RenderError(f"pixel_split must be 'off', 'mse', 'relmse' or an integer in [1, 64], "
+                              f"got '{psplit}'") from None
+        if not 1 <= psplit <= 64:
+            raise RenderError(f"pixel_split must be 'off', 'mse', 'relmse' or an integer in [1, 64], got {psplit}")
+    if psplit in ("mse", "relmse") and not auto:
+        warnings.append(f"pixel_split={psplit} needs learned rates (chain_rate=auto); no split")
     if split == "auto" and split_given and not auto:
         warnings.append("delta_split=auto needs learned rates (chain_rate=auto); no split")
     if handoff_given and not auto:
@@ -194,12 +208,24 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         cam = scene.desc.camera
         kmap = np.full((int(cam.crop[3]), int(cam.crop[2])), float(split), dtype=np.float32)
         rate_info.update(delta_split_fraction=1.0, delta_split_mean=float(split))
+    smap = None
+    if psplit in ("mse", "relmse") and costs is not None and costs.n >= 2:
+        qs = qmap if qmap is not None else np.full(costs.delta_rays.shape, float(params["chain_rate"]))
+        ks = kmap if kmap is not None else np.ones(qs.shape)
+        smap, psplit_info = learn_pixel_split(costs, qs, ks, objective=psplit)
+        rate_info.update(psplit_info)
+        if not np.any(smap > 1):
+            smap = None
+    elif isinstance(psplit, int) and psplit > 1:
+        cam = scene.desc.camera
+        smap = np.full((int(cam.crop[3]), int(cam.crop[2])), float(psplit), dtype=np.float32)
+        rate_info.update(pixel_split_fraction=1.0, pixel_split_mean=float(psplit))
     seconds_training = _time.monotonic() - t0
     rest_spp = None if spp is None else max(1, spp - spp_train)
     rest_t = None if time is None else max(0.05, time - seconds_training)
     img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
-                 chain_rate_map=qmap, delta_split_map=kmap)
+                 chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap)
     st: dict[str, Any] = img.stats
     st["warnings"] = list(dict.fromkeys(st.get("warnings", []) + warnings))
     st["integrator"] = "mpg"
@@ -231,4 +257,6 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["delta_split"] = ("learned" if split == "auto" else str(split)) if kmap is not None else "off"
     img.chain_rate_map = qmap
     img.delta_split_map = kmap
+    st["pixel_split"] = (psplit if isinstance(psplit, str) else str(psplit)) if smap is not None else "off"
+    img.pixel_split_map = smap
     return img

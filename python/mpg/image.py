@@ -22,6 +22,8 @@ class Image:
     chain_rate_map: float32 (H, W), mpg's learned per-pixel chain rates, or None.
     delta_split_map: float32 (H, W), mpg's camera paths per sample for the light
               seen through delta scattering only (1: no split), or None.
+    pixel_split_map: float32 (H, W), mpg's camera samples averaged per sample
+              (1: no split), or None.
     """
 
     rgb: np.ndarray
@@ -30,6 +32,7 @@ class Image:
     stats: dict[str, Any] = field(default_factory=dict)
     chain_rate_map: np.ndarray | None = None
     delta_split_map: np.ndarray | None = None
+    pixel_split_map: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -26,7 +26,7 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "guide_dir", "training_fraction", "stree_c", "stree_epsilon", "stree_filter",
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
                 "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff",
-                "delta_split"}
+                "delta_split", "pixel_split"}
 BOOL_PARAMS = {"hide_emitters", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "chain_handoff"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
@@ -219,6 +219,7 @@ def render(
     progress: bool | None = None,
     chain_rate_map: np.ndarray | None = None,
     delta_split_map: np.ndarray | None = None,
+    pixel_split_map: np.ndarray | None = None,
 ) -> Image:
     """Render `scene` and return an Image.
 
@@ -232,6 +233,9 @@ def render(
     delta_split_map: per-pixel delta-split counts (crop height x width, integers
       1..64), mpg's learned ones: a pixel's light seen through delta scattering
       only is averaged over k camera paths per sample.
+    pixel_split_map: per-pixel sample splits (crop height x width, integers
+      1..64), mpg's learned ones: each sample of a pixel is the mean of k
+      camera samples.
     """
     from mpg import _core
 
@@ -309,7 +313,8 @@ def render(
             try:
                 job = _core.RenderJob(core_scene, integ, k, seed, passes, threads or 0,
                                       chain_rate_map=chain_rate_map,
-                                      delta_split_map=delta_split_map)
+                                      delta_split_map=delta_split_map,
+                                      pixel_split_map=pixel_split_map)
             except ValueError as e:   # a bad chain_rate_map (shape, values)
                 raise RenderError(str(e)) from None
             cancelled_by_time = False

@@ -1,0 +1,139 @@
+"""The pixel split (design-notes "Splitting the pixels"): each sample of a
+pixel is the mean of k camera samples, k from a map fixed before the render.
+Any map of k >= 1 keeps the image unbiased, k = 1 is the plain render bit for
+bit, k divides a sample's variance by k, and mpg learns k (Eq. 4 of
+mpg.chain_rates) where its training saw a pixel's variance large for its
+cost."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import mpg
+from mpg import _core
+from mpg.chain_rates import CostAccumulator, learn_pixel_split
+from stats_util import image_zmax
+
+RES = 32
+REGIONS = [np.s_[:, :]] + [np.s_[i:i + 16, j:j + 16] for i in (0, 16) for j in (0, 16)]
+
+
+@pytest.fixture(scope="module")
+def sphere(scenes_dir):
+    return mpg.load_file(scenes_dir / "eval" / "sphere.xml", res=RES)
+
+
+def _pass(sc, name, spp, seed, smap=None, record_costs=False):
+    core = sc.core
+    job = _core.RenderJob(core, _core.make_integrator(core, name, {}), spp, seed, 0, 0,
+                          pixel_split_map=smap, record_costs=record_costs)
+    while not job.wait(0.05):
+        pass
+    return job.result()
+
+
+def test_a_map_of_ones_is_the_plain_render(sphere):
+    for name in ("path", "sms_star"):
+        a = _pass(sphere, name, 8, 5)
+        b = _pass(sphere, name, 8, 5, np.ones((RES, RES), np.float32))
+        assert np.array_equal(a["sum"], b["sum"]) and np.array_equal(a["sum_sq"], b["sum_sq"])
+        assert b["stats"]["pixel_split_samples"] == 0
+
+
+def test_a_split_keeps_the_image_unbiased_and_divides_the_variance(sphere):
+    """A random map of k in 1..8 agrees with the plain path tracer (|z| < 5 on
+    the image and four regions, p < 6e-7 each); k = 4 everywhere divides the
+    per-sample variance summed over the image by about 4 (asserted: below 0.5
+    of the plain render's and above 0.1)."""
+    rng = np.random.default_rng(3)
+    smap = rng.integers(1, 9, (RES, RES)).astype(np.float32)
+    ref = mpg.render(sphere, "path", spp=4096, seed=11, progress=False)
+    img = mpg.render(sphere, "path", spp=1024, seed=13, progress=False, pixel_split_map=smap)
+    assert img.stats["pixel_split_samples"] == pytest.approx(1024 * (smap - 1).sum())
+    assert img.stats["rejected_samples"] == 0
+    assert image_zmax(img, ref, REGIONS) < 5
+    n = 1024
+    plain = mpg.render(sphere, "path", spp=n, seed=19, progress=False)
+    split = mpg.render(sphere, "path", spp=n, seed=23, progress=False,
+                       pixel_split_map=np.full((RES, RES), 4, np.float32))
+    ratio = float(split.variance.sum()) / float(plain.variance.sum())
+    assert 0.1 < ratio < 0.5, ratio
+
+
+def test_bad_split_maps_are_refused(sphere):
+    core = sphere.core
+    integ = _core.make_integrator(core, "path", {})
+    for bad in (np.zeros((RES, RES), np.float32), np.full((RES, RES), 1.5, np.float32),
+                np.full((RES, RES), 65, np.float32), np.ones((RES, RES + 1), np.float32),
+                np.full((RES, RES), np.nan, np.float32)):
+        with pytest.raises(ValueError, match="pixel_split_map"):
+            _core.RenderJob(core, integ, 1, 0, 0, 0, pixel_split_map=bad)
+    with pytest.raises(ValueError, match="record_costs"):
+        _core.RenderJob(core, integ, 1, 0, 0, 0, pixel_split_map=np.full((RES, RES), 2, np.float32),
+                        record_costs=True)
+
+
+def _acc(var_t, rays, n=64):
+    """n training samples at q = 1 with per-sample variance var_t (mean 0.5),
+    rays per sample, no chain work and no light seen through delta scattering."""
+    h, w = var_t.shape
+    a = CostAccumulator((h, w))
+    a.n = n
+    a.sum = np.full((h, w, 3), 0.5 * n)
+    a.sum_sq = np.repeat(((var_t * (n - 1) / n) + 0.25)[..., None] * n, 3, axis=2)
+    a.rays = rays * n
+    a.rate_sum = np.full((h, w), 1.0 * n)
+    return a
+
+
+def test_learned_split_is_eq4():
+    """The map is Eq. 4's fixed point: each k_p = rint(sqrt(V_p mean(kC) /
+    (C_p mean(V/k)))) in [1, 16] with the means of the map returned
+    (objective mse, no window); more samples where the variance is larger or
+    a sample cheaper, 1 where training saw no variance."""
+    rng = np.random.default_rng(0)
+    var_t = rng.uniform(0.0, 1.0, (8, 8))
+    var_t[0, 0] = 400.0
+    var_t[7, :] = 0.0
+    rays = rng.uniform(2.0, 8.0, (8, 8))
+    acc = _acc(var_t, rays)
+    q = np.ones((8, 8), np.float32)
+    k, info = learn_pixel_split(acc, q, np.ones((8, 8)), radius=0, objective="mse")
+    v, c = var_t, rays
+    c_mean, v_mean = float(np.mean(k * c)), float(np.mean(v / k))
+    np.testing.assert_array_equal(k, np.clip(np.rint(np.sqrt(v * c_mean / (c * v_mean))), 1, 16))
+    assert k[0, 0] == 16 and np.all(k[7] == 1) and k.max() <= 16 and k.min() >= 1
+    assert info["pixel_split_fraction"] == pytest.approx(float(np.mean(k > 1)))
+    assert info["pixel_split_cost"] == pytest.approx(c_mean / float(np.mean(c)))
+    # relmse weighs a pixel's variance by 1 / (I^2 + 0.01): a brighter pixel gets fewer
+    acc.sum[0, 1] = 10.0 * acc.n                  # mean 10, variance 100
+    acc.sum_sq[0, 1] = (100.0 * (acc.n - 1) / acc.n + 100.0) * acc.n
+    kr, _ = learn_pixel_split(acc, q, np.ones((8, 8)), radius=0, objective="relmse")
+    km, _ = learn_pixel_split(acc, q, np.ones((8, 8)), radius=0, objective="mse")
+    assert kr[0, 1] < km[0, 1]
+    # NaN/Inf sums give finite counts
+    acc.sum_sq[1, 1, 1] = np.nan
+    acc.sum_sq[2, 2, 0] = np.inf
+    kn, _ = learn_pixel_split(acc, q, np.ones((8, 8)), radius=0, objective="mse")
+    assert np.isfinite(kn).all() and kn.min() >= 1
+
+
+def test_mpg_pixel_split_options(sphere):
+    """mpg learns a map with pixel_split=mse (off by default); a uniform
+    pixel_split=3 stays unbiased against the path tracer (|z| < 5); bad
+    settings are clear errors."""
+    off = mpg.render(sphere, "mpg", spp=32, seed=2, progress=False)
+    assert off.pixel_split_map is None and off.stats["pixel_split"] == "off"
+    img = mpg.render(sphere, {"type": "mpg", "pixel_split": "mse"}, spp=64, seed=2, progress=False)
+    assert img.stats["pixel_split"] == "mse"
+    k = img.pixel_split_map
+    assert k is not None and (k > 1).any() and k.min() >= 1 and k.max() <= 16
+    assert img.stats["pixel_split_samples"] > 0
+    ref = mpg.render(sphere, "path", spp=8192, seed=31, progress=False)
+    uni = mpg.render(sphere, {"type": "mpg", "pixel_split": 3}, spp=256, seed=37, progress=False)
+    assert uni.stats["pixel_split"] == "3" and uni.stats["pixel_split_samples"] > 0
+    assert image_zmax(uni, ref, REGIONS) < 5
+    for bad in ({"pixel_split": 0}, {"pixel_split": "x"}, {"pixel_split": 65}):
+        with pytest.raises(mpg.RenderError, match="pixel_split"):
+            mpg.render(sphere, dict(type="mpg", **bad), spp=2, progress=False)
