@@ -156,12 +156,12 @@ def test_pixels_go_to_the_path_tracer_where_it_is_as_good_for_less():
     assert np.all(q_off > 0) and info_off["chain_rate_fraction_pt"] == 0.0
     # no hits at all, but the chains' light cannot matter (second moment 1e-4
     # of a sample's variance, set by other light: glints in the glass): 0
-    # anyway; at 1e-2 of it the chains stay
-    for frac, zero in ((1e-4, True), (1e-2, False)):
+    # anyway; at 1e-2 of it the chains stay, unless `negligible` is above that
+    for frac, neg, zero in ((1e-4, 1e-3, True), (1e-2, 1e-3, False), (1e-2, 2e-2, True)):
         m2s = np.full((h, w), frac * 50.0)
         vs = np.full((h, w), 50.0)
         b = _acc(m2s, c1, c0, vs, mean=3.0, alt_var=vs - (1 / 0.125 - 1) * m2s, alt_mean=3.0, alt_hits=0.0)
-        qb, _ = learn_rates(b, radius=0)
+        qb, _ = learn_rates(b, radius=0, negligible=neg)
         assert np.all(qb == 0.0) if zero else np.all(qb > 0)
 
 
@@ -340,6 +340,9 @@ def test_bad_chain_rate_settings_are_clear_errors(scenes_dir):
                         ({"type": "mpg", "chain_rate_train": "x"}, "chain_rate_train"),
                         ({"type": "mpg", "chain_rate": "sometimes"}, "chain_rate"),
                         ({"type": "mpg", "chain_rate_objective": "mape"}, "chain_rate_objective"),
+                        ({"type": "mpg", "chain_handoff_negligible": -0.1}, "chain_handoff_negligible"),
+                        ({"type": "mpg", "chain_handoff_negligible": 2}, "chain_handoff_negligible"),
+                        ({"type": "mpg", "chain_handoff_negligible": "x"}, "chain_handoff_negligible"),
                         ({"type": "sms_star", "chain_rate": "auto"}, "chain_rate"),   # learned rates need training
                         ({"type": "mpg", "chain_rate": "auto", "guide": None}, "chain_rate")):
         with pytest.raises(mpg.RenderError, match=msg):

@@ -152,7 +152,8 @@ def _weights(mean: np.ndarray, objective: str, radius: int) -> np.ndarray:
 
 def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
                 iterations: int = 50, objective: str = "relmse",
-                handoff: bool = True, min_hits: float = HANDOFF_MIN_HITS) -> tuple[np.ndarray, dict]:
+                handoff: bool = True, min_hits: float = HANDOFF_MIN_HITS,
+                negligible: float = HANDOFF_NEGLIGIBLE) -> tuple[np.ndarray, dict]:
     """Per-pixel rates by Eq. (1) of the module docstring, and a summary.
 
     M_p and c1_p are averaged over a (2 radius + 1)^2 window first: a pixel of a
@@ -208,7 +209,7 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
         # of one sample's variance (double_slabs: the glints of the light in
         # the slabs' bumpy tops set the variance, the chains' E[X^2] is 0.7 % of it)
         eligible = has & ((_box_blur(finite(acc.alt_hits), radius, total=True) >= min_hits) |
-                          (_box_blur(m2_raw, radius) <= HANDOFF_NEGLIGIBLE * _box_blur(var_t, radius)))
+                          (_box_blur(m2_raw, radius) <= negligible * _box_blur(var_t, radius)))
 
     def means(q, pt):
         """mean(wV) and mean(C) of a map (blurred M, c1, dv: what the choices see)."""

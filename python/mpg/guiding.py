@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from mpg.chain_rates import CostAccumulator, learn_delta_split, learn_pixel_split, learn_rates
+from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, CostAccumulator, learn_delta_split, learn_pixel_split,
+                             learn_rates)
 from mpg.errors import RenderError
 
 def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
@@ -45,6 +46,11 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # chain_handoff: a pixel may get rate 0, the path tracer alone (mpg.chain_rates, Eq. 2)
     handoff_given = "chain_handoff" in params
     handoff = bool(params.pop("chain_handoff", True))
+    # ... where the chains' second moment is below this fraction of a sample's
+    # variance (or the path tracer found their light often: mpg.chain_rates)
+    negligible = float(params.pop("chain_handoff_negligible", HANDOFF_NEGLIGIBLE))
+    if not 0.0 <= negligible <= 1.0:
+        raise RenderError(f"chain_handoff_negligible must be in [0, 1], got {negligible}")
     if objective not in ("mse", "relmse"):
         raise RenderError(f"chain_rate_objective must be 'mse' or 'relmse', got '{objective}'")
     auto = rate == "auto"   # render() turned any other value into a float or an error
@@ -194,7 +200,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     rate_info: dict[str, Any] = {}
     qmap = kmap = None
     if costs is not None:
-        qmap, rate_info = learn_rates(costs, q_min=q_min, objective=objective, handoff=handoff)
+        qmap, rate_info = learn_rates(costs, q_min=q_min, objective=objective, handoff=handoff,
+                                      negligible=negligible)
         if not rate_info.get("chain_rate_learned"):
             # too little training (< 2 spp): the training rate throughout
             qmap, rate_info = None, {}

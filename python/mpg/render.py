@@ -26,6 +26,7 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "guide_dir", "training_fraction", "stree_c", "stree_epsilon", "stree_filter",
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
                 "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff",
+                "chain_handoff_negligible",
                 "delta_split", "pixel_split"}
 BOOL_PARAMS = {"hide_emitters", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "chain_handoff"}
@@ -104,7 +105,7 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
                 raise RenderError(f"parameter {k} must be an integer, got '{core_params[k]}'") from None
     for k in ("continuation", "uniqueness_threshold", "threshold", "glossy_threshold",
               "guide_fraction", "training_fraction", "stree_c", "stree_epsilon", "chain_rate",
-              "chain_rate_min", "chain_rate_train"):
+              "chain_rate_min", "chain_rate_train", "chain_handoff_negligible"):
         if k == "chain_rate" and name == "mpg" and str(core_params.get(k)).strip().lower() == "auto":
             if "guide" in core_params:
                 raise RenderError("chain_rate 'auto' is learned by mpg's training loop; "
