@@ -165,3 +165,30 @@ def image_zmax(a, b, regions) -> float:
 
 # the image and its nine 8x8 blocks, for the 24x24 agreement tests
 REGIONS_24 = [np.s_[:, :]] + [np.s_[i:i + 8, j:j + 8] for i in (0, 8, 16) for j in (0, 8, 16)]
+# a 32x32 image and its four quarters
+REGIONS_32 = [np.s_[:, :]] + [np.s_[i:i + 16, j:j + 16] for i in (0, 16) for j in (0, 16)]
+
+
+def run_pass(sc, name, spp, seed, params=None, **kw):
+    """One render pass of integrator `name` through the core (RenderJob
+    keywords: the per-pixel maps, record_costs) and its result dict."""
+    from mpg import _core
+    core = sc.core
+    job = _core.RenderJob(core, _core.make_integrator(core, name, params or {}), spp, seed, 0, 0, **kw)
+    while not job.wait(0.05):
+        pass
+    return job.result()
+
+
+def check_uniform_split(sc, ref, param, k, spp, counter, regions):
+    """mpg with the split `param` = k everywhere agrees with the path-traced
+    `ref` (|z| < 5 on each region), counts its extra work in stats[counter],
+    reports the setting; 0, 'x' and 65 are clear errors naming the parameter."""
+    import mpg
+    import pytest
+    img = mpg.render(sc, {"type": "mpg", param: k}, spp=spp, seed=37, progress=False)
+    assert img.stats[param] == str(k) and img.stats[counter] > 0
+    assert image_zmax(img, ref, regions) < 5
+    for bad in (0, "x", 65):
+        with pytest.raises(mpg.RenderError, match=param):
+            mpg.render(sc, {"type": "mpg", param: bad}, spp=2, progress=False)

@@ -13,25 +13,19 @@ import pytest
 import mpg
 from mpg import _core
 from mpg.chain_rates import STEP_COST, CostAccumulator, learn_delta_split
-from stats_util import image_zmax
+from stats_util import REGIONS_32, check_uniform_split, image_zmax, run_pass
 
 RES = 32
-REGIONS = [np.s_[:, :]] + [np.s_[i:i + 16, j:j + 16] for i in (0, 16) for j in (0, 16)]
+REGIONS = REGIONS_32
 
 
 @pytest.fixture(scope="module")
-def sphere(scenes_dir):
-    # the eval sphere: the camera sees the small light refracted and reflected in the glass
-    return mpg.load_file(scenes_dir / "eval" / "sphere.xml", res=RES)
+def sphere(sphere32):
+    return sphere32
 
 
 def _pass(sc, name, spp, seed, kmap=None, params=None):
-    core = sc.core
-    job = _core.RenderJob(core, _core.make_integrator(core, name, params or {}), spp, seed, 0, 0,
-                          delta_split_map=kmap)
-    while not job.wait(0.05):
-        pass
-    return job.result()
+    return run_pass(sc, name, spp, seed, params, delta_split_map=kmap)
 
 
 def test_a_map_of_ones_is_the_plain_render(sphere):
@@ -133,7 +127,7 @@ def test_learned_split_is_eq3():
     assert np.isfinite(kn).all() and kn.min() >= 1
 
 
-def test_mpg_splits_where_the_camera_sees_glass_and_stays_unbiased(sphere):
+def test_mpg_splits_where_the_camera_sees_glass_and_stays_unbiased(sphere, sphere32_path_ref):
     """mpg's learned map is > 1 only near pixels that see the light in the glass;
     with a uniform delta_split=4 mpg agrees with the path tracer
     (|z| < 5); delta_split=1 learns no map; bad settings are clear errors."""
@@ -150,10 +144,4 @@ def test_mpg_splits_where_the_camera_sees_glass_and_stays_unbiased(sphere):
     assert not (k > 1)[~near].any()
     off = mpg.render(sphere, {"type": "mpg", "delta_split": 1}, spp=16, seed=2, progress=False)
     assert off.delta_split_map is None and off.stats["delta_split"] == "off"
-    ref = mpg.render(sphere, "path", spp=8192, seed=31, progress=False)
-    uni = mpg.render(sphere, {"type": "mpg", "delta_split": 4}, spp=512, seed=37, progress=False)
-    assert uni.stats["delta_split"] == "4" and uni.stats["delta_split_paths"] > 0
-    assert image_zmax(uni, ref, REGIONS) < 5
-    for bad in ({"delta_split": 0}, {"delta_split": "x"}, {"delta_split": 65}):
-        with pytest.raises(mpg.RenderError, match="delta_split"):
-            mpg.render(sphere, dict(type="mpg", **bad), spp=2, progress=False)
+    check_uniform_split(sphere, sphere32_path_ref, "delta_split", 4, 512, "delta_split_paths", REGIONS)

@@ -13,24 +13,19 @@ import pytest
 import mpg
 from mpg import _core
 from mpg.chain_rates import CostAccumulator, learn_pixel_split
-from stats_util import image_zmax
+from stats_util import REGIONS_32, check_uniform_split, image_zmax, run_pass
 
 RES = 32
-REGIONS = [np.s_[:, :]] + [np.s_[i:i + 16, j:j + 16] for i in (0, 16) for j in (0, 16)]
+REGIONS = REGIONS_32
 
 
 @pytest.fixture(scope="module")
-def sphere(scenes_dir):
-    return mpg.load_file(scenes_dir / "eval" / "sphere.xml", res=RES)
+def sphere(sphere32):
+    return sphere32
 
 
-def _pass(sc, name, spp, seed, smap=None, record_costs=False):
-    core = sc.core
-    job = _core.RenderJob(core, _core.make_integrator(core, name, {}), spp, seed, 0, 0,
-                          pixel_split_map=smap, record_costs=record_costs)
-    while not job.wait(0.05):
-        pass
-    return job.result()
+def _pass(sc, name, spp, seed, smap=None):
+    return run_pass(sc, name, spp, seed, pixel_split_map=smap)
 
 
 def test_a_map_of_ones_is_the_plain_render(sphere):
@@ -119,7 +114,7 @@ def test_learned_split_is_eq4():
     assert np.isfinite(kn).all() and kn.min() >= 1
 
 
-def test_mpg_pixel_split_options(sphere):
+def test_mpg_pixel_split_options(sphere, sphere32_path_ref):
     """mpg learns a map with pixel_split=mse (off by default); a uniform
     pixel_split=3 stays unbiased against the path tracer (|z| < 5); bad
     settings are clear errors."""
@@ -130,10 +125,4 @@ def test_mpg_pixel_split_options(sphere):
     k = img.pixel_split_map
     assert k is not None and (k > 1).any() and k.min() >= 1 and k.max() <= 16
     assert img.stats["pixel_split_samples"] > 0
-    ref = mpg.render(sphere, "path", spp=8192, seed=31, progress=False)
-    uni = mpg.render(sphere, {"type": "mpg", "pixel_split": 3}, spp=256, seed=37, progress=False)
-    assert uni.stats["pixel_split"] == "3" and uni.stats["pixel_split_samples"] > 0
-    assert image_zmax(uni, ref, REGIONS) < 5
-    for bad in ({"pixel_split": 0}, {"pixel_split": "x"}, {"pixel_split": 65}):
-        with pytest.raises(mpg.RenderError, match="pixel_split"):
-            mpg.render(sphere, dict(type="mpg", **bad), spp=2, progress=False)
+    check_uniform_split(sphere, sphere32_path_ref, "pixel_split", 3, 256, "pixel_split_samples", REGIONS)

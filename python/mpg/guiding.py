@@ -199,6 +199,21 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             sys.stderr.write("\n")
     rate_info: dict[str, Any] = {}
     qmap = kmap = None
+    cam = scene.desc.camera
+
+    def uniform(k: float) -> np.ndarray:
+        """A per-pixel map of k everywhere (crop height x width)."""
+        return np.full((int(cam.crop[3]), int(cam.crop[2])), float(k), dtype=np.float32)
+
+    def learned(m: np.ndarray, info: dict) -> np.ndarray | None:
+        """A learned split map, None when it splits no pixel; its summary joins rate_info."""
+        rate_info.update(info)
+        return m if np.any(m > 1) else None
+
+    def rates() -> np.ndarray:
+        """The render's chain rates per pixel: the learned map, or the one rate."""
+        return qmap if qmap is not None else uniform(params["chain_rate"])
+
     if costs is not None:
         qmap, rate_info = learn_rates(costs, q_min=q_min, objective=objective, handoff=handoff,
                                       negligible=negligible)
@@ -206,26 +221,16 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             # too little training (< 2 spp): the training rate throughout
             qmap, rate_info = None, {}
         if split == "auto" and costs.n > 0:
-            qs = qmap if qmap is not None else np.full(costs.delta_rays.shape, float(params["chain_rate"]))
-            kmap, split_info = learn_delta_split(costs, qs, objective=objective)
-            rate_info.update(split_info)
-            if not np.any(kmap > 1):
-                kmap = None
+            kmap = learned(*learn_delta_split(costs, rates(), objective=objective))
     if isinstance(split, int) and split > 1:
-        cam = scene.desc.camera
-        kmap = np.full((int(cam.crop[3]), int(cam.crop[2])), float(split), dtype=np.float32)
+        kmap = uniform(split)
         rate_info.update(delta_split_fraction=1.0, delta_split_mean=float(split))
     smap = None
     if psplit in ("mse", "relmse") and costs is not None and costs.n >= 2:
-        qs = qmap if qmap is not None else np.full(costs.delta_rays.shape, float(params["chain_rate"]))
-        ks = kmap if kmap is not None else np.ones(qs.shape)
-        smap, psplit_info = learn_pixel_split(costs, qs, ks, objective=psplit)
-        rate_info.update(psplit_info)
-        if not np.any(smap > 1):
-            smap = None
+        smap = learned(*learn_pixel_split(costs, rates(), kmap if kmap is not None else uniform(1),
+                                          objective=psplit))
     elif isinstance(psplit, int) and psplit > 1:
-        cam = scene.desc.camera
-        smap = np.full((int(cam.crop[3]), int(cam.crop[2])), float(psplit), dtype=np.float32)
+        smap = uniform(psplit)
         rate_info.update(pixel_split_fraction=1.0, pixel_split_mean=float(psplit))
     seconds_training = _time.monotonic() - t0
     rest_spp = None if spp is None else max(1, spp - spp_train)
