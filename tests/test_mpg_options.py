@@ -166,3 +166,10 @@ def test_largest_chain_estimate_is_reported():
     direct = mpg.render(sc, integrator="path", spp=8, seed=1, progress=False)
     chain_part = (img.rgb - direct.rgb).mean(-1)     # the mirror term (path tracing misses it)
     assert st["max_chain_value"] >= 0.9 * chain_part.max() > 0
+    # ... as it enters the sample: after the roulette's 1/q (per unit K, an
+    # estimate here varies by ~25 % over the mirror; 1/q = 4)
+    assert st["max_chain_rate"] == 1.0
+    sq = mpg.render(sc, integrator={"type": "sms", "tau": "R", "chain_rate": 0.25}, spp=8, seed=1,
+                    progress=False).stats
+    assert sq["max_chain_rate"] == 0.25
+    assert sq["max_chain_value"] / sq["max_chain_K"] >= 2.0 * st["max_chain_value"] / st["max_chain_K"]

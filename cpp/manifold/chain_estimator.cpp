@@ -604,9 +604,12 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     }
     result = f * kap * Le * float(scale);
     st.chain_contributions++;
-    if (const double v = double(luminance(result)); v > st.max_chain_value) {
+    // The largest estimate as it enters the sample: after the roulette's 1/q
+    // (path.cpp takes q the same way), where low rates make the fireflies.
+    const double q = st.pixel_chain_rate >= 0.f ? double(st.pixel_chain_rate) : double(p_.chain_rate);
+    if (const double v = double(luminance(result)) / std::max(q, 1e-6); v > st.max_chain_value) {
       st.max_chain_value = v; st.max_chain_K = K; st.max_chain_G = G; st.max_chain_pn = pn;
-      st.max_chain_n = n; st.max_chain_guided = guide ? 1.0 : 0.0;
+      st.max_chain_n = n; st.max_chain_guided = guide ? 1.0 : 0.0; st.max_chain_rate = q;
     }
   } while (false);
   st.chain_ns += ns_since(t0);

@@ -79,7 +79,7 @@ struct Stats {
   std::vector<SubpathSample> subpaths;  // recorded in training passes
   // the largest chain estimate (luminance) and its factors: where the heavy tail comes from
   double max_chain_value = 0.0, max_chain_K = 0.0, max_chain_G = 0.0, max_chain_pn = 0.0,
-         max_chain_n = 0.0, max_chain_guided = 0.0;
+         max_chain_n = 0.0, max_chain_guided = 0.0, max_chain_rate = 0.0;
 
   void merge(const Stats& o) {
     samples += o.samples; camera_rays += o.camera_rays; rays += o.rays;
@@ -102,6 +102,7 @@ struct Stats {
     if (o.max_chain_value > max_chain_value) {
       max_chain_value = o.max_chain_value; max_chain_K = o.max_chain_K; max_chain_G = o.max_chain_G;
       max_chain_pn = o.max_chain_pn; max_chain_n = o.max_chain_n; max_chain_guided = o.max_chain_guided;
+      max_chain_rate = o.max_chain_rate;
     }
   }
   std::map<std::string, double> to_map() const {
@@ -124,7 +125,8 @@ struct Stats {
             {"subpath_samples", double(subpaths.size())},
             {"max_chain_value", max_chain_value}, {"max_chain_K", max_chain_K},
             {"max_chain_G", max_chain_G}, {"max_chain_pn", max_chain_pn},
-            {"max_chain_n", max_chain_n}, {"max_chain_guided", max_chain_guided}};
+            {"max_chain_n", max_chain_n}, {"max_chain_guided", max_chain_guided},
+            {"max_chain_rate", max_chain_rate}};
   }
 };
 
