@@ -179,6 +179,15 @@ std::shared_ptr<std::vector<float>> pixel_map(const py::object& o, const Camera&
   return std::make_shared<std::vector<float>>(a.data(), a.data() + a.size());
 }
 
+// A per-pixel count map (the splits): integers in [1, 64].
+std::shared_ptr<std::vector<float>> count_map(const py::object& o, const Camera& c, const char* name) {
+  auto m = pixel_map(o, c, name);
+  for (float k : *m)
+    if (!(k >= 1.f && k <= 64.f && k == std::floor(k)))
+      throw std::invalid_argument(std::string(name) + " values must be integers in [1, 64]");
+  return m;
+}
+
 WalkConfig walk_config(const py::dict& p);
 
 GuideConfig guide_config(float c, float epsilon, int max_depth, int threads, const std::string& filter,
@@ -641,20 +650,14 @@ PYBIND11_MODULE(_core, m) {
           cfg.chain_rate_map = std::move(m);
         }
         if (!delta_split_map.is_none()) {
-          auto m = pixel_map(delta_split_map, scene->camera, "delta_split_map");
-          for (float k : *m)
-            if (!(k >= 1.f && k <= 64.f && k == std::floor(k)))
-              throw std::invalid_argument("delta_split_map values must be integers in [1, 64]");
+          auto m = count_map(delta_split_map, scene->camera, "delta_split_map");
           auto* pi = dynamic_cast<const PathIntegrator*>(integ.get());
           if (pi && pi->camera_delta() != PathParams::CameraDelta::All)
             throw std::invalid_argument("delta_split_map needs the integrator's camera_delta = all");
           cfg.delta_split_map = std::move(m);
         }
         if (!pixel_split_map.is_none()) {
-          auto m = pixel_map(pixel_split_map, scene->camera, "pixel_split_map");
-          for (float k : *m)
-            if (!(k >= 1.f && k <= 64.f && k == std::floor(k)))
-              throw std::invalid_argument("pixel_split_map values must be integers in [1, 64]");
+          auto m = count_map(pixel_split_map, scene->camera, "pixel_split_map");
           if (record_costs)   // the per-sample records would see the last camera sample only
             throw std::invalid_argument("pixel_split_map cannot be used with record_costs");
           cfg.pixel_split_map = std::move(m);

@@ -127,6 +127,15 @@ def _sample_variance(s, s2, n: float) -> np.ndarray:
     return np.maximum(_finite(s2) / n - m * m, 0.0).mean(axis=2) * (n / (n - 1))
 
 
+def _alt_mse(acc: "CostAccumulator", n: float, mean: np.ndarray) -> np.ndarray:
+    """Per-pixel E[(A - I)^2] (mean over RGB) of the path tracer alone's values A
+    about the training mean I, scaled by n / (n - 1) as _sample_variance is:
+    where A = L the two are equal."""
+    a_mean = _finite(acc.alt_sum) / n
+    a_m2 = _finite(acc.alt_sum_sq) / n
+    return np.maximum(a_m2 - 2.0 * a_mean * mean + mean * mean, 0.0).mean(axis=2) * (n / (n - 1))
+
+
 def _costs(acc: "CostAccumulator", n: float) -> tuple:
     """(q_t, chain steps, c1, mis, c0) per pixel: the training passes' mean
     rate, the walk steps inside chain estimates, the chain cost per sample at
@@ -196,10 +205,7 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
     mis_b = _box_blur(mis, radius)
     eligible = np.zeros(shape, dtype=bool)
     if handoff:
-        a_mean = finite(acc.alt_sum) / n
-        a_m2 = finite(acc.alt_sum_sq) / n
-        # (n / (n - 1) as var_t's: where A = L the two cancel exactly)
-        alt_mse = np.maximum(a_m2 - 2.0 * a_mean * mean + mean * mean, 0.0).mean(axis=2) * (n / (n - 1))
+        alt_mse = _alt_mse(acc, n, mean)
         # V1 = w var_t - (1/q_t - 1) M, the pixel's variance at q = 1 (weighted)
         dv_b = _box_blur(wgt * alt_mse - wgt * var_t + (1.0 / q_t - 1.0) * m2, radius, nonneg=False)
         # ... but only where the window saw the path tracer find that light
@@ -363,9 +369,7 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
     mean = _finite(acc.sum) / n
     var_t = _sample_variance(acc.sum, acc.sum_sq, n)
     m2 = _finite(acc.chain_m2) / n
-    a_mean = _finite(acc.alt_sum) / n
-    alt_mse = np.maximum(_finite(acc.alt_sum_sq) / n - 2.0 * a_mean * mean + mean * mean,
-                         0.0).mean(axis=2) * (n / (n - 1))
+    alt_mse = _alt_mse(acc, n, mean)
     var_d = _sample_variance(acc.delta_sum, acc.delta_sum_sq, n)
     qc = np.clip(q, 1e-3, 1.0)
     v = np.where(q > 0.0, var_t + (1.0 / qc - 1.0 / np.maximum(q_t, 1e-3)) * m2, alt_mse)

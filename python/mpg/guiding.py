@@ -20,6 +20,21 @@ from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, CostAccumulator, learn_delta_sp
                              learn_rates)
 from mpg.errors import RenderError
 
+
+def _split_setting(name: str, value, words: tuple[str, ...]):
+    """A split parameter: one of `words`, or an integer count in [1, 64]."""
+    if str(value) in words:
+        return str(value)
+    allowed = " or ".join([", ".join(f"'{w}'" for w in words), "an integer in [1, 64]"])
+    try:
+        k = int(value)
+    except (TypeError, ValueError):
+        raise RenderError(f"{name} must be {allowed}, got '{value}'") from None
+    if not 1 <= k <= 64:
+        raise RenderError(f"{name} must be {allowed}, got {k}")
+    return k
+
+
 def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
                seed: int, threads: int | None, progress: bool | None):
     from mpg import _core
@@ -57,26 +72,11 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # delta_split: "auto" (learned with the rates), or k camera paths per sample
     # for the light seen through delta scattering only everywhere (1: off)
     split_given = "delta_split" in params
-    split = params.pop("delta_split", "auto")
-    if split != "auto":
-        try:
-            split = int(split)
-        except (TypeError, ValueError):
-            raise RenderError(f"delta_split must be 'auto' or an integer in [1, 64], got '{split}'") from None
-        if not 1 <= split <= 64:
-            raise RenderError(f"delta_split must be 'auto' or an integer in [1, 64], got {split}")
+    split = _split_setting("delta_split", params.pop("delta_split", "auto"), ("auto",))
     # pixel_split: "off" (default), "mse" or "relmse" (learned with the rates for
     # that error: each sample of a pixel the mean of k camera samples), or k
     # everywhere (mpg.chain_rates.learn_pixel_split)
-    psplit = str(params.pop("pixel_split", "off"))
-    if psplit not in ("off", "mse", "relmse"):
-        try:
-            psplit = int(psplit)
-        except ValueError:
-            raise RenderError(f"pixel_split must be 'off', 'mse', 'relmse' or an integer in [1, 64], "
-                              f"got '{psplit}'") from None
-        if not 1 <= psplit <= 64:
-            raise RenderError(f"pixel_split must be 'off', 'mse', 'relmse' or an integer in [1, 64], got {psplit}")
+    psplit = _split_setting("pixel_split", params.pop("pixel_split", "off"), ("off", "mse", "relmse"))
     if psplit in ("mse", "relmse") and not auto:
         warnings.append(f"pixel_split={psplit} needs learned rates (chain_rate=auto); no split")
     if split == "auto" and split_given and not auto:
@@ -269,6 +269,6 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["delta_split"] = ("learned" if split == "auto" else str(split)) if kmap is not None else "off"
     img.chain_rate_map = qmap
     img.delta_split_map = kmap
-    st["pixel_split"] = (psplit if isinstance(psplit, str) else str(psplit)) if smap is not None else "off"
+    st["pixel_split"] = str(psplit) if smap is not None else "off"
     img.pixel_split_map = smap
     return img

@@ -1,0 +1,93 @@
+"""Where an image's error sits: one mpg render (or any integrator) against the
+cached reference, the share of MSE and relMSE in its worst pixels, and those
+pixels. With --moments X Y (mpg only), the training statistics the learned
+rates saw at that pixel: the chains' second moment E[sum X^2], a sample's
+variance, the chain cost at rate 1 against the rest of the sample, and the
+rate the pixel got (docs/results.md, "Splitting the pixels, and a floor on the
+rates").
+
+    python bench/pixel_errors.py sphere --integrator mpg --time 30 --seed 3 --moments 169 60
+
+Needs the scene's reference in the cache (mpg-bench reference). Writes
+bench/results/pixel_errors-<scene>-<integrator>-<seed>.json."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def main() -> int:
+    import mpg
+    import mpg.guiding as guiding
+    from mpg.bench import reference as refmod
+    from mpg.bench.scenes import resolve_scene
+    from mpg.chain_rates import _costs, _finite, _sample_variance
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("scene")
+    ap.add_argument("--integrator", default="mpg", help="name, with parameters as in mpg-bench: mpg/pixel_split=mse")
+    ap.add_argument("--time", type=float, default=30.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--top", type=int, default=5, help="pixels to list")
+    ap.add_argument("--moments", type=int, nargs=2, metavar=("X", "Y"))
+    args = ap.parse_args()
+
+    sc = resolve_scene(args.scene)
+    info = refmod.find_reference(sc)
+    if info is None:
+        print(f"pixel_errors: no cached reference of {args.scene}; make it with mpg-bench reference",
+              file=sys.stderr)
+        return 2
+    ref, _ = refmod.load_reference(info)
+    name, *kv = args.integrator.split("/")
+    integ = dict(type=name, **dict(p.split("=", 1) for p in kv))
+    seen: dict = {}
+    learn = guiding.learn_rates
+
+    def spy(acc, **kw):   # keep the training statistics the rates are learned from
+        q, rinfo = learn(acc, **kw)
+        seen.update(acc=acc, q=q)
+        return q, rinfo
+
+    guiding.learn_rates = spy
+    img = mpg.render(sc.load_mpg(), integ, time=args.time, seed=args.seed, progress=False)
+    se = ((img.rgb.astype(float) - ref) ** 2).mean(axis=2)
+    rel = se / (ref.mean(axis=2) ** 2 + 0.01)
+    out: dict = {"scene": args.scene, "integrator": args.integrator, "seed": args.seed,
+                 "time": args.time, "spp": img.spp, "mse": float(se.mean()), "relmse": float(rel.mean())}
+    for key, e in (("mse", se), ("relmse", rel)):
+        flat = np.sort(e.ravel())[::-1]
+        out[f"{key}_share_top"] = {str(k): float(flat[:k].sum() / flat.sum()) for k in (1, 10, 100, 1000)}
+        pix = []
+        for k in np.argsort(e.ravel())[::-1][:args.top]:
+            y, x = divmod(int(k), e.shape[1])
+            pix.append({"x": x, "y": y, "reference": float(ref[y, x].mean()), "image": float(img.rgb[y, x].mean()),
+                        "share": float(e[y, x] / e.sum())})
+        out[f"{key}_top_pixels"] = pix
+    for k in ("max_chain_value", "max_chain_K", "max_chain_G", "max_chain_n", "max_chain_guided", "max_chain_rate"):
+        if k in img.stats:
+            out[k] = img.stats[k]
+    if args.moments and "acc" in seen:
+        x, y = args.moments
+        acc, n = seen["acc"], float(seen["acc"].n)
+        _, _, c1, _, c0 = _costs(acc, n)
+        out["moments"] = {"x": x, "y": y, "training_spp": n, "rate": float(seen["q"][y, x]),
+                          "chain_m2": float(_finite(acc.chain_m2)[y, x] / n),
+                          "sample_variance": float(_sample_variance(acc.sum, acc.sum_sq, n)[y, x]),
+                          "chain_cost_rate1": float(c1[y, x]), "rest_cost": float(c0[y, x])}
+    path = ROOT / "bench" / "results" / f"pixel_errors-{args.scene}-{name}-{args.seed}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=1))
+    print(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
