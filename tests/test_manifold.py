@@ -213,3 +213,28 @@ def test_degenerate_configurations_end_in_named_failures():
     dirs = [[rng.uniform(-1, 1), -1, rng.uniform(-1, 1)] for _ in range(100)]
     f = _failures(mirror, [0, 1, 0], [0, -1, 0], [1, 1e-5, 0], [0, 1, 0], dirs, "R")
     assert "vanishing_segment" in f and "none" not in f
+
+
+def test_step_halvings_limits_the_line_search_and_the_counters_add_up():
+    """`step_halvings` (off by default) stops later iterations that many
+    halvings below the beta they start from. A light 0.05 above a mirror is the
+    case the full search exists for: from 200 random seeds it converges
+    182 walks, limited to two halvings 25 (measured; asserted with a wide
+    margin). The try counters are consistent: every accepted iteration is a
+    try, and a landing off the surfaces is a try."""
+    mirror = core(MIRROR)
+    rng = np.random.default_rng(3)
+    dirs = [[rng.uniform(-1, 1), -1, rng.uniform(-1, 1)] for _ in range(200)]
+    conv = {}
+    for h in (-1, 2):
+        conv[h] = 0
+        for d in dirs:
+            r = _core.manifold_walk(mirror, [0, 1, 0], [0, -1, 0], [1, 0.05, 0], [0, 1, 0], d, "R",
+                                    {"step_halvings": h})
+            if "reprojections" in r:  # the seed itself landed
+                assert r["iterations"] <= r["reprojections"] and 0 <= r["off_surface"] <= r["reprojections"]
+            conv[h] += bool(r["converged"])
+    assert conv[-1] > 150 and conv[2] < 0.5 * conv[-1], conv
+    for bad in ({"step_halvings": -2}, {"step_halvings": 31}, {"min_step": 0.0}, {"min_step": 1.5}):
+        with pytest.raises(ValueError):
+            _core.manifold_walk(mirror, [0, 1, 0], [0, -1, 0], [1, 0.05, 0], [0, 1, 0], dirs[0], "R", bad)

@@ -315,6 +315,10 @@ WalkConfig walk_config(const py::dict& p) {
   WalkConfig c;
   c.threshold = get<double>(p, "threshold", c.threshold);
   c.max_iterations = get<int>(p, "max_iterations", c.max_iterations);
+  c.min_step = get<double>(p, "min_step", c.min_step);
+  c.step_halvings = get<int>(p, "step_halvings", c.step_halvings);
+  if (c.step_halvings < -1 || c.step_halvings > 30) throw std::invalid_argument("step_halvings must be -1 (no limit) or 0..30");
+  if (!(c.min_step > 0.0 && c.min_step <= 1.0)) throw std::invalid_argument("min_step must be in (0, 1]");
   c.glossy_threshold = get<float>(p, "glossy_threshold", c.glossy_threshold);
   if (!(c.glossy_threshold >= 0.f)) throw std::invalid_argument("glossy_threshold must be >= 0");
   const std::string form = get<std::string>(p, "form", "direction");
@@ -361,6 +365,8 @@ py::dict manifold_walk(const Scene& s, py::object xD, py::object nD, py::object 
   r["converged"] = res.converged;
   r["failure"] = std::string(walk_failure_name(res.failure));
   r["iterations"] = res.iterations;
+  r["reprojections"] = res.reprojections;
+  r["off_surface"] = res.off_surface;
   r["residuals"] = res.residuals;
   r["vertices"] = chain_points(chain);
   if (res.converged) {

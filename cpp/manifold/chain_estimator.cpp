@@ -160,7 +160,9 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     WalkFailure why = WalkFailure::None;
     // A trial's work in vertex steps (a traced or reprojected vertex: a ray and
     // a chart), deterministic unlike chain_ns: mpg.chain_rates' cost model. The
-    // traced seed counts whether it fails or not, then each Newton iteration.
+    // traced seed counts whether it fails or not, then each accepted Newton
+    // iteration (the line search's rejected tries are not counted: see
+    // walk_reprojections and design-notes, "Step control").
     st.walk_steps += uint64_t(n);
     if (!walk_.trace_seed(xD, nD, to_d(dir), tau, chain, why, &offsets)) {
       st.walk_failures[size_t(why)]++;
@@ -168,6 +170,8 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     }
     const WalkResult r = walk_.solve(chain);
     st.walk_steps += uint64_t(n) * uint64_t(r.iterations);
+    st.walk_reprojections += uint64_t(r.reprojections);
+    st.walk_off_surface += uint64_t(r.off_surface);
     if (!r.converged) {
       st.walk_failures[size_t(r.failure)]++;
       return false;
@@ -231,6 +235,8 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
   }
   const WalkResult r = walk_.solve(chain);
   st.walk_steps += uint64_t(n) * uint64_t(r.iterations);
+  st.walk_reprojections += uint64_t(r.reprojections);
+  st.walk_off_surface += uint64_t(r.off_surface);
   if (!r.converged) {
     st.walk_failures[size_t(r.failure)]++;
     return false;

@@ -579,6 +579,13 @@ WalkResult ManifoldWalk::solve(ManifoldChain& chain) const {
       return res;
     }
     bool accepted = false;
+    // Iterations after the first may be limited to step_halvings halvings below
+    // the beta they start from (off by default): it saves the long searches of
+    // walks that fail anyway (double_slabs: half the tries), but walks towards a
+    // light near a mirror need them (design-notes, "Step control").
+    const double floor_it = it == 0 || cfg_.step_halvings < 0
+                                ? cfg_.min_step
+                                : std::max(cfg_.min_step, std::ldexp(beta, -cfg_.step_halvings));
     while (!accepted) {
       double moved = 0.0;
       for (size_t i = 0; i < n; ++i) {
@@ -593,11 +600,14 @@ WalkResult ManifoldWalk::solve(ManifoldChain& chain) const {
         return res;
       }
       WalkFailure why = WalkFailure::None;
+      res.reprojections++;
       // Accept a step that lands on the surfaces and does not blow the residual
       // up (a backtracking line search on beta; 1.5x tolerates the max-norm's
       // non-monotone decrease): plain Newton overshoots where the constraints
       // are far from linear, e.g. with the light near the specular surface.
-      if (reproject(chain, targets, trial, why) && constraints(trial, Ct) && max_abs(Ct) < 1.5 * err) {
+      const bool landed = reproject(chain, targets, trial, why);
+      if (!landed) res.off_surface++;
+      if (landed && constraints(trial, Ct) && max_abs(Ct) < 1.5 * err) {
         accepted = true;
         chain = trial;
         C = Ct;
@@ -605,7 +615,7 @@ WalkResult ManifoldWalk::solve(ManifoldChain& chain) const {
         beta = std::min(1.0, 2.0 * beta);
       } else {
         beta *= 0.5;
-        if (beta < cfg_.min_step) {
+        if (beta < floor_it) {
           res.failure = why == WalkFailure::None ? WalkFailure::StepTooSmall : why;
           res.iterations = it + 1;
           return res;

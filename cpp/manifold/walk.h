@@ -45,7 +45,11 @@ const char* walk_failure_name(WalkFailure f);
 struct WalkConfig {
   double threshold = 1e-5;     // max |C_i| at convergence (SMS/MPG default)
   int max_iterations = 20;     // SMS/MPG default
+  // The line search halves beta down to min_step (then `step_too_small`); with
+  // step_halvings >= 0, iterations after the first stop that many halvings below
+  // the beta they start from (-1: no such limit).
   double min_step = 1.0 / 1024.0;
+  int step_halvings = -1;
   double min_segment = 1e-6;   // relative to the scene size
   double min_det = 1e-14;      // |det| of a 2x2 pivot below this is singular
   float glossy_threshold = 0.1f;  // rough interfaces with alpha below this are chain vertices
@@ -93,6 +97,8 @@ struct WalkResult {
   bool converged = false;
   WalkFailure failure = WalkFailure::None;
   int iterations = 0;
+  int reprojections = 0;  // line-search tries (each reprojects every vertex)
+  int off_surface = 0;    // of which: the moved chain did not land on its shapes
   std::vector<double> residuals;  // max |C| per iteration (for the convergence tests)
 };
 

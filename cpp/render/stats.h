@@ -69,6 +69,8 @@ struct Stats {
   uint64_t bernoulli_ns = 0;         // of which: the Bernoulli trials estimating 1/P
   uint64_t guide_ns = 0;             // of which: guiding (STree query, sampling n, tau, omega from a leaf)
   uint64_t walk_steps = 0;           // manifold-walk work: traced + reprojected vertices, all trials
+  uint64_t walk_reprojections = 0;   // line-search tries of the walks (each reprojects the chain)
+  uint64_t walk_off_surface = 0;     // of which: the moved chain did not land on its shapes
   uint64_t chain_steps = 0;          // of which: inside chain estimates (not the path tracer's MIS rounds)
   std::array<uint64_t, 11> walk_failures{};  // by WalkFailure
   // guiding (mpg)
@@ -92,7 +94,7 @@ struct Stats {
     chain_contributions += o.chain_contributions; bernoulli_trials += o.bernoulli_trials;
     bernoulli_capped += o.bernoulli_capped; owned_dropped += o.owned_dropped; owned_shared += o.owned_shared; chain_ns += o.chain_ns;
     bernoulli_ns += o.bernoulli_ns; guide_ns += o.guide_ns;
-    walk_steps += o.walk_steps; chain_steps += o.chain_steps;
+    walk_steps += o.walk_steps; walk_reprojections += o.walk_reprojections; walk_off_surface += o.walk_off_surface; chain_steps += o.chain_steps;
     for (size_t i = 0; i < walk_failures.size(); ++i) walk_failures[i] += o.walk_failures[i];
     guided_trials += o.guided_trials;
     chain_inactive += o.chain_inactive;
@@ -118,7 +120,8 @@ struct Stats {
             {"bernoulli_trials", double(bernoulli_trials)}, {"bernoulli_capped", double(bernoulli_capped)},
             {"owned_dropped", double(owned_dropped)}, {"owned_shared", double(owned_shared)}, {"chain_ns", double(chain_ns)},
             {"bernoulli_ns", double(bernoulli_ns)}, {"guide_ns", double(guide_ns)},
-            {"walk_steps", double(walk_steps)}, {"chain_steps", double(chain_steps)},
+            {"walk_steps", double(walk_steps)}, {"walk_reprojections", double(walk_reprojections)}, {"walk_off_surface", double(walk_off_surface)},
+            {"chain_steps", double(chain_steps)},
             {"guided_trials", double(guided_trials)}, {"chain_inactive", double(chain_inactive)},
             {"chain_skipped", double(chain_skipped)},
             {"chain_handed", double(chain_handed)},

@@ -21,7 +21,8 @@ from mpg.scene.desc import IntegratorDesc, SceneDesc
 IMPLEMENTED = {"path", "sms", "sms_star", "mpg"}
 PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters", "camera_delta"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
-                "threshold", "max_iterations", "form", "glossy_threshold", "mis", "chain_rate"}
+                "threshold", "max_iterations", "min_step", "step_halvings", "form", "glossy_threshold",
+                "mis", "chain_rate"}
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
                 "guide_dir", "training_fraction", "stree_c", "stree_epsilon", "stree_filter",
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
@@ -96,14 +97,14 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
     allowed = PATH_PARAMS | (CHAIN_PARAMS if name != "path" else set()) | (
         GUIDE_PARAMS if name == "mpg" else set())
     core_params = {k: v for k, v in params.items() if k in allowed}
-    for k in ("max_chain", "max_trials", "max_iterations", "max_depth", "rr_depth",
-              "stree_threshold", "knn_k", "photons"):
+    for k in ("max_chain", "max_trials", "max_iterations", "step_halvings", "max_depth",
+              "rr_depth", "stree_threshold", "knn_k", "photons"):
         if k in core_params:
             try:
                 core_params[k] = int(core_params[k])
             except (TypeError, ValueError):
                 raise RenderError(f"parameter {k} must be an integer, got '{core_params[k]}'") from None
-    for k in ("continuation", "uniqueness_threshold", "threshold", "glossy_threshold",
+    for k in ("continuation", "uniqueness_threshold", "threshold", "min_step", "glossy_threshold",
               "guide_fraction", "training_fraction", "stree_c", "stree_epsilon", "chain_rate",
               "chain_rate_min", "chain_rate_train", "chain_handoff_negligible"):
         if k == "chain_rate" and name == "mpg" and str(core_params.get(k)).strip().lower() == "auto":

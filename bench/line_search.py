@@ -1,0 +1,121 @@
+"""What the manifold walk's line search costs and buys: the walk settings
+`min_step` and `step_halvings` (docs/design-notes.md, "Step control") on
+
+1. the chain estimator's work (sms_star, 128^2, 8 spp, seed 1): chain time per
+   estimate, first-trial convergence, Bernoulli trials per estimate, line-search
+   tries and off-surface landings per walk (--scenes);
+2. a planar mirror lit by a point light at distances 1 to 0.01 from it (the
+   closed-form scene of tests/test_chains.py, 64^2, 3 s): MSE x seconds against
+   the closed form, for sms_star and mpg;
+3. (--suite) variance x time without a reference: mean over pixels of the
+   estimated variance of the pixel mean x seconds, 10 s, 2 seeds, 128^2.
+
+    python bench/line_search.py [--scenes double_slabs sphere] [--suite slab ring pool plane sphere_point]
+
+Writes bench/results/line_search.json. Every setting is unbiased (the walk is
+a deterministic map from seed to solution, the same in the estimate and its
+Bernoulli trials); only the efficiency differs."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+SETTINGS = {"default": {}, "step_halvings=2": {"step_halvings": 2}, "min_step=0.5": {"min_step": 0.5}}
+
+
+def mirror_xml(lx: float, res: int) -> str:
+    from test_chains import CAM
+    return f"""<scene version="3.0.0"><integrator type="path"><integer name="max_depth" value="3"/></integrator>
+      {CAM.format(fov=30, o="-0.4, 4, 0", t="-0.4, 0, 0", res=res)}
+      <shape type="rectangle"><transform name="to_world"><scale value="10"/><rotate x="1" angle="-90"/></transform>
+        <bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>
+      <shape type="rectangle"><transform name="to_world"><scale value="3"/><rotate y="1" angle="-90"/>
+        <translate x="1" y="3"/></transform>
+        <bsdf type="conductor"><string name="material" value="none"/></bsdf></shape>
+      <emitter type="point"><point name="position" x="{lx}" y="1" z="0"/><rgb name="intensity" value="3"/></emitter>
+    </scene>"""
+
+
+def mirror_expected(lx: float, res: int, sub: int = 6) -> np.ndarray:
+    """The floor's radiance from the light and its image in the mirror x = 1
+    (as tests/test_chains.py's mirror_expected, with the light at x = lx)."""
+    t = np.tan(np.radians(15))
+    off = (np.arange(sub) + 0.5) / sub
+    px = (np.arange(res)[:, None] + off[None, :]).ravel()
+    s = (2 * px / res - 1) * t
+    X, Z = np.meshgrid(s * 4 - 0.4, s * 4)
+    out = np.zeros_like(X)
+    for lpos in (lx, 2.0 - lx):
+        d2 = (X - lpos) ** 2 + 1 + Z**2
+        out += 3.0 * (1 / np.sqrt(d2)) / d2
+    out *= 0.5 / np.pi
+    return out.reshape(res, sub, res, sub).mean(axis=(1, 3))
+
+
+def main() -> int:
+    import mpg
+    from mpg.bench.scenes import resolve_scene
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scenes", nargs="*", default=["double_slabs", "sphere"])
+    ap.add_argument("--suite", nargs="*", default=[])
+    args = ap.parse_args()
+    out: dict = {"command": " ".join(sys.argv), "work": {}, "mirror": {}, "suite": {}}
+
+    for name in args.scenes:
+        bs = resolve_scene(name)
+        sc = mpg.load_file(bs.path, **dict(bs.params, res="128"))
+        for label, cfg in SETTINGS.items():
+            s = mpg.render(sc, integrator=dict({"type": "sms_star"}, **cfg), spp=8, seed=1, progress=False).stats
+            est = max(s["chain_estimates"], 1)
+            walks = est + s["bernoulli_trials"]
+            row = {"us_per_estimate": s["chain_ns"] / est / 1e3, "converged": s["chain_converged"] / est,
+                   "trials_per_estimate": s["bernoulli_trials"] / est,
+                   "tries_per_walk": s["walk_reprojections"] / walks, "off_surface_per_walk": s["walk_off_surface"] / walks}
+            out["work"].setdefault(name, {})[label] = row
+            print(f"{name:13s} {label:16s} " + " ".join(f"{k} {v:.3g}" for k, v in row.items()), flush=True)
+
+    for lx in (0.0, 0.9, 0.97, 0.99):
+        sc = mpg.load_string(mirror_xml(lx, 64))
+        exp = mirror_expected(lx, 64)
+        for integ in ("sms_star", "mpg"):
+            for label, cfg in SETTINGS.items():
+                r = mpg.render(sc, integrator=dict({"type": integ}, **cfg), time=3, seed=1, progress=False)
+                v = float(np.mean((r.rgb[..., 0] - exp) ** 2)) * r.stats["seconds"]
+                out["mirror"].setdefault(f"{1 - lx:.2f}", {}).setdefault(integ, {})[label] = v
+                print(f"mirror, light {1 - lx:.2f} from it, {integ:8s} {label:16s} MSE x s {v:.3g}", flush=True)
+
+    for name in args.suite:
+        bs = resolve_scene(name)
+        sc = mpg.load_file(bs.path, **dict(bs.params, res="128"))
+        for integ in ("sms_star", "mpg"):
+            for label, cfg in SETTINGS.items():
+                vals = []
+                for seed in range(2):
+                    r = mpg.render(sc, integrator=dict({"type": integ}, **cfg), time=10, seed=seed, progress=False)
+                    vals.append(float(np.mean(r.variance)) * r.stats["seconds"])
+                out["suite"].setdefault(name, {}).setdefault(integ, {})[label] = float(np.mean(vals))
+            row = out["suite"][name][integ]
+            print(f"{name:13s} {integ:8s} variance x s, relative to the default: "
+                  + " ".join(f"{k} {v / row['default']:.2f}" for k, v in row.items()), flush=True)
+
+    res = ROOT / "bench" / "results"
+    res.mkdir(parents=True, exist_ok=True)
+    (res / "line_search.json").write_text(json.dumps(out, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    t0 = time.perf_counter()
+    rc = main()
+    print(f"{time.perf_counter() - t0:.0f} s")
+    sys.exit(rc)
