@@ -32,38 +32,10 @@ sys.path.insert(0, str(ROOT / "tests"))
 SETTINGS = {"default": {}, "step_halvings=2": {"step_halvings": 2}, "min_step=0.5": {"min_step": 0.5}}
 
 
-def mirror_xml(lx: float, res: int) -> str:
-    from test_chains import CAM
-    return f"""<scene version="3.0.0"><integrator type="path"><integer name="max_depth" value="3"/></integrator>
-      {CAM.format(fov=30, o="-0.4, 4, 0", t="-0.4, 0, 0", res=res)}
-      <shape type="rectangle"><transform name="to_world"><scale value="10"/><rotate x="1" angle="-90"/></transform>
-        <bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>
-      <shape type="rectangle"><transform name="to_world"><scale value="3"/><rotate y="1" angle="-90"/>
-        <translate x="1" y="3"/></transform>
-        <bsdf type="conductor"><string name="material" value="none"/></bsdf></shape>
-      <emitter type="point"><point name="position" x="{lx}" y="1" z="0"/><rgb name="intensity" value="3"/></emitter>
-    </scene>"""
-
-
-def mirror_expected(lx: float, res: int, sub: int = 6) -> np.ndarray:
-    """The floor's radiance from the light and its image in the mirror x = 1
-    (as tests/test_chains.py's mirror_expected, with the light at x = lx)."""
-    t = np.tan(np.radians(15))
-    off = (np.arange(sub) + 0.5) / sub
-    px = (np.arange(res)[:, None] + off[None, :]).ravel()
-    s = (2 * px / res - 1) * t
-    X, Z = np.meshgrid(s * 4 - 0.4, s * 4)
-    out = np.zeros_like(X)
-    for lpos in (lx, 2.0 - lx):
-        d2 = (X - lpos) ** 2 + 1 + Z**2
-        out += 3.0 * (1 / np.sqrt(d2)) / d2
-    out *= 0.5 / np.pi
-    return out.reshape(res, sub, res, sub).mean(axis=(1, 3))
-
-
 def main() -> int:
     import mpg
     from mpg.bench.scenes import resolve_scene
+    from test_chains import mirror_expected, mirror_scene
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--scenes", nargs="*", default=["double_slabs", "sphere"])
@@ -85,8 +57,8 @@ def main() -> int:
             print(f"{name:13s} {label:16s} " + " ".join(f"{k} {v:.3g}" for k, v in row.items()), flush=True)
 
     for lx in (0.0, 0.9, 0.97, 0.99):
-        sc = mpg.load_string(mirror_xml(lx, 64))
-        exp = mirror_expected(lx, 64)
+        sc = mpg.load_string(mirror_scene(64, lx))
+        exp = mirror_expected(64, lx=lx)
         for integ in ("sms_star", "mpg"):
             for label, cfg in SETTINGS.items():
                 r = mpg.render(sc, integrator=dict({"type": integ}, **cfg), time=3, seed=1, progress=False)

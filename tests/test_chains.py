@@ -17,8 +17,8 @@ CAM = """<sensor type="perspective"><float name="fov" value="{fov}"/>
   <rfilter type="box"/></film></sensor>"""
 
 
-def mirror_scene(res=24):
-    # floor y = 0 (diffuse 0.5), mirror wall x = 1 facing -x, point light at (0, 1, 0)
+def mirror_scene(res=24, lx=0.0):
+    # floor y = 0 (diffuse 0.5), mirror wall x = 1 facing -x, point light at (lx, 1, 0)
     return f"""<scene version="3.0.0"><integrator type="path"><integer name="max_depth" value="3"/></integrator>
       {CAM.format(fov=30, o="-0.4, 4, 0", t="-0.4, 0, 0", res=res)}
       <shape type="rectangle"><transform name="to_world"><scale value="10"/><rotate x="1" angle="-90"/></transform>
@@ -26,11 +26,11 @@ def mirror_scene(res=24):
       <shape type="rectangle"><transform name="to_world"><scale value="3"/><rotate y="1" angle="-90"/>
         <translate x="1" y="3"/></transform>
         <bsdf type="conductor"><string name="material" value="none"/></bsdf></shape>
-      <emitter type="point"><point name="position" x="0" y="1" z="0"/><rgb name="intensity" value="3"/></emitter>
+      <emitter type="point"><point name="position" x="{lx:g}" y="1" z="0"/><rgb name="intensity" value="3"/></emitter>
     </scene>"""
 
 
-def mirror_expected(res=24, sub=6):
+def mirror_expected(res=24, sub=6, lx=0.0):
     """Radiance of the floor: rho/pi * I * (cos/d^2 from the light + from its image)."""
     t = np.tan(np.radians(15))
     off = (np.arange(sub) + 0.5) / sub
@@ -38,8 +38,8 @@ def mirror_expected(res=24, sub=6):
     s = (2 * px / res - 1) * t
     X, Z = np.meshgrid(s * 4 - 0.4, s * 4)   # camera at height 4 looking down, up = -z
     out = np.zeros_like(X)
-    for lx in (0.0, 2.0):                    # light and its mirror image
-        d2 = (X - lx) ** 2 + 1 + Z**2
+    for l in (lx, 2.0 - lx):                 # light and its mirror image
+        d2 = (X - l) ** 2 + 1 + Z**2
         out += 3.0 * (1 / np.sqrt(d2)) / d2  # max_depth 3: nothing else reaches the floor
     out *= 0.5 / np.pi
     return out.reshape(res, sub, res, sub).mean(axis=(1, 3))
