@@ -7,7 +7,10 @@
 2. a planar mirror lit by a point light at distances 1 to 0.01 from it (the
    closed-form scene of tests/test_chains.py, 64^2, 3 s): MSE x seconds against
    the closed form, for sms_star and mpg;
-3. (--suite) variance x time without a reference: mean over pixels of the
+3. 200 walks from random seeds towards a light 0.05 above a large mirror
+   (the case of tests/test_manifold.py): how many converge, and the tries
+   (line-search reprojections) and off-surface landings of those that do;
+4. (--suite) variance x time without a reference: mean over pixels of the
    estimated variance of the pixel mean x seconds, 10 s, 2 seeds, 128^2.
 
     python bench/line_search.py [--scenes double_slabs sphere] [--suite slab ring pool plane sphere_point]
@@ -63,8 +66,27 @@ def main() -> int:
             for label, cfg in SETTINGS.items():
                 r = mpg.render(sc, integrator=dict({"type": integ}, **cfg), time=3, seed=1, progress=False)
                 v = float(np.mean((r.rgb[..., 0] - exp) ** 2)) * r.stats["seconds"]
-                out["mirror"].setdefault(f"{1 - lx:.2f}", {}).setdefault(integ, {})[label] = v
-                print(f"mirror, light {1 - lx:.2f} from it, {integ:8s} {label:16s} MSE x s {v:.3g}", flush=True)
+                conv = r.stats["chain_converged"] / max(r.stats["chain_estimates"], 1)
+                out["mirror"].setdefault(f"{1 - lx:.2f}", {}).setdefault(integ, {})[label] = {
+                    "mse_x_seconds": v, "converged": conv}
+                print(f"mirror, light {1 - lx:.2f} from it, {integ:8s} {label:16s} MSE x s {v:.3g}"
+                      f"  first trials converged {conv:.3f}", flush=True)
+
+    from mpg import _core
+    from test_manifold import MIRROR
+    big = mpg.load_string(MIRROR).core
+    rng = np.random.default_rng(3)
+    dirs = [[rng.uniform(-1, 1), -1, rng.uniform(-1, 1)] for _ in range(200)]
+    for label, cfg in SETTINGS.items():
+        walks = [_core.manifold_walk(big, [0, 1, 0], [0, -1, 0], [1, 0.05, 0], [0, 1, 0], d, "R", cfg) for d in dirs]
+        ok = [w for w in walks if w["converged"]]
+        tries = np.array([w["reprojections"] for w in ok] or [0])
+        off = np.array([w["off_surface"] for w in ok] or [0])
+        row = {"converged": len(ok), "tries_median": float(np.median(tries)), "tries_max": int(tries.max()),
+               "off_surface_mean": float(off.mean())}
+        out["walks"] = dict(out.get("walks", {}), **{label: row})
+        print(f"200 walks, light 0.05 above a mirror, {label:16s} " + " ".join(f"{k} {v:.3g}" for k, v in row.items()),
+              flush=True)
 
     for name in args.suite:
         bs = resolve_scene(name)

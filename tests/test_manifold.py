@@ -218,9 +218,9 @@ def test_degenerate_configurations_end_in_named_failures():
 def test_step_halvings_limits_the_line_search_and_the_counters_add_up():
     """`step_halvings` (off by default) stops later iterations that many
     halvings below the beta they start from. A light 0.05 above a mirror is the
-    case the full search exists for: from 200 random seeds it converges
-    182 walks, limited to two halvings 25 (measured; asserted with a wide
-    margin). The try counters are consistent: every accepted iteration is a
+    case the full search exists for: from these 200 random seeds it converges
+    180 walks, limited to two halvings 28 (bench/line_search.py; asserted
+    with a wide margin). The try counters are consistent: every accepted iteration is a
     try, and a landing off the surfaces is a try."""
     mirror = core(MIRROR)
     rng = np.random.default_rng(3)

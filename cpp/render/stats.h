@@ -68,7 +68,7 @@ struct Stats {
   uint64_t chain_ns = 0;             // time in chain estimation (summed over threads)
   uint64_t bernoulli_ns = 0;         // of which: the Bernoulli trials estimating 1/P
   uint64_t guide_ns = 0;             // of which: guiding (STree query, sampling n, tau, omega from a leaf)
-  uint64_t walk_steps = 0;           // manifold-walk work: traced + reprojected vertices, all trials
+  uint64_t walk_steps = 0;           // manifold-walk work: traced vertices + those of accepted iterations, all trials
   uint64_t walk_reprojections = 0;   // line-search tries of the walks (each reprojects the chain)
   uint64_t walk_off_surface = 0;     // of which: the moved chain did not land on its shapes
   uint64_t chain_steps = 0;          // of which: inside chain estimates (not the path tracer's MIS rounds)
