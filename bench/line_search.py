@@ -32,7 +32,14 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-SETTINGS = {"default": {}, "step_halvings=2": {"step_halvings": 2}, "min_step=0.5": {"min_step": 0.5}}
+SETTINGS = {"full search": {"step_halvings": -1}, "step_halvings=2": {"step_halvings": 2},
+            "min_step=0.5": {"min_step": 0.5}}
+# mpg's default: the limit chosen in training (mpg.guiding.choose_step_halvings)
+MPG_SETTINGS = dict(SETTINGS, **{"auto": {"step_halvings": "auto"}})
+
+
+def settings(integ: str) -> dict:
+    return MPG_SETTINGS if integ == "mpg" else SETTINGS
 
 
 def main() -> int:
@@ -63,14 +70,15 @@ def main() -> int:
         sc = mpg.load_string(mirror_scene(64, lx))
         exp = mirror_expected(64, lx=lx)
         for integ in ("sms_star", "mpg"):
-            for label, cfg in SETTINGS.items():
+            for label, cfg in settings(integ).items():
                 r = mpg.render(sc, integrator=dict({"type": integ}, **cfg), time=3, seed=1, progress=False)
                 v = float(np.mean((r.rgb[..., 0] - exp) ** 2)) * r.stats["seconds"]
                 conv = r.stats["chain_converged"] / max(r.stats["chain_estimates"], 1)
                 out["mirror"].setdefault(f"{1 - lx:.2f}", {}).setdefault(integ, {})[label] = {
-                    "mse_x_seconds": v, "converged": conv}
+                    "mse_x_seconds": v, "converged": conv, "step_halvings": r.stats.get("step_halvings")}
                 print(f"mirror, light {1 - lx:.2f} from it, {integ:8s} {label:16s} MSE x s {v:.3g}"
-                      f"  first trials converged {conv:.3f}", flush=True)
+                      f"  first trials converged {conv:.3f}"
+                      + (f"  (chose {r.stats['step_halvings']})" if label == "auto" else ""), flush=True)
 
     from mpg import _core
     from test_manifold import MIRROR
@@ -92,15 +100,15 @@ def main() -> int:
         bs = resolve_scene(name)
         sc = mpg.load_file(bs.path, **dict(bs.params, res="128"))
         for integ in ("sms_star", "mpg"):
-            for label, cfg in SETTINGS.items():
+            for label, cfg in settings(integ).items():
                 vals = []
                 for seed in range(2):
                     r = mpg.render(sc, integrator=dict({"type": integ}, **cfg), time=10, seed=seed, progress=False)
                     vals.append(float(np.mean(r.variance)) * r.stats["seconds"])
                 out["suite"].setdefault(name, {}).setdefault(integ, {})[label] = float(np.mean(vals))
             row = out["suite"][name][integ]
-            print(f"{name:13s} {integ:8s} variance x s, relative to the default: "
-                  + " ".join(f"{k} {v / row['default']:.2f}" for k, v in row.items()), flush=True)
+            print(f"{name:13s} {integ:8s} variance x s, relative to the full search: "
+                  + " ".join(f"{k} {v / row['full search']:.2f}" for k, v in row.items()), flush=True)
 
     res = ROOT / "bench" / "results"
     res.mkdir(parents=True, exist_ok=True)

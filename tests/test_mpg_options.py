@@ -93,10 +93,16 @@ def test_photons_need_chains(scenes_dir):
                                     {"init": "photon", "product": "true"}])
 def test_mpg_options_are_unbiased_against_path_tracing(params, scenes_dir):
     """As test_guiding's unbiasedness test, with photon initialisation and
-    product-sampling weights: |z| < 5 on the image and nine regions."""
+    product-sampling weights: |z| < 5 on the image and nine regions. 1024 spp:
+    the chain estimates are heavy-tailed, and at 384 spp the photon + product
+    case sat at |z| = 4.25 with the full line search and 5.4 with the limit
+    mpg chose (the same block, low in both: a short run of a heavy-tailed
+    estimator mostly falls short); over 24 seeds x 384 spp both agree with a
+    65 536 spp path reference (|z| < 2.2 in every region). At 1024 spp six
+    seeds give |z| <= 3.3."""
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
     ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
-    img = mpg.render(sc, integrator=dict(params, type="mpg"), spp=384, seed=12, progress=False)
+    img = mpg.render(sc, integrator=dict(params, type="mpg"), spp=1024, seed=12, progress=False)
     st = img.stats
     if params.get("init") == "photon":
         assert st["init"] == "photon" and st["photon_samples"] > 0

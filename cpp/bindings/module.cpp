@@ -235,6 +235,8 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
       if (!(cp.guide_fraction >= 0.f && cp.guide_fraction < 1.f))
         throw std::invalid_argument("guide_fraction must be in [0, 1)");
     }
+    // the estimates under each line-search limit (Stats::limit_m2; mpg's training)
+    cp.count_limits = get<bool>(p, "count_limits", false);
     cp.tau = get<std::string>(p, "tau", "TT");
     for (char c : cp.tau)
       if (c != 'R' && c != 'T') throw std::invalid_argument("tau must be a string of R and T");
@@ -367,6 +369,8 @@ py::dict manifold_walk(const Scene& s, py::object xD, py::object nD, py::object 
   r["iterations"] = res.iterations;
   r["reprojections"] = res.reprojections;
   r["off_surface"] = res.off_surface;
+  r["later_rejections"] = res.later_rejections;
+  r["limited_tries"] = std::vector<int>(res.limited_tries.begin(), res.limited_tries.end());
   r["residuals"] = res.residuals;
   r["vertices"] = chain_points(chain);
   if (res.converged) {

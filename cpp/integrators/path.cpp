@@ -62,7 +62,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         // (0 when the estimator takes it whole; design.md "No double counting").
         if (!is_black(Le)) {
           const float w = chains_->pt_weight(sep_si, sep_ctx, sep_depth, max_depth, chain_si.data(), tau, si,
-                                             rng, st);
+                                             rng, st, beta * Le);
           st.sample_alt_delta += beta * Le * (1.f - w);  // the path tracer alone keeps it whole
           st.sample_owned_hit = true;  // (w can round to 1 where the path tracer's density dominates)
           if (w > 0.f) {

@@ -137,9 +137,30 @@ bool ChainEstimator::sample_light(PCG32& rng, LightPoint& lp) const {
   return lp.pdf > 0.0;
 }
 
+namespace {
+// A walk's work (Stats), and its work under each line-search limit (TrialTally).
+void count_walk(const WalkResult& r, int n, Stats& st, TrialTally* tally) {
+  st.walk_steps += uint64_t(n) * uint64_t(r.iterations);
+  st.walk_reprojections += uint64_t(r.reprojections);
+  st.walk_off_surface += uint64_t(r.off_surface);
+  if (!tally) return;
+  tally->later_rejections = r.later_rejections;
+  for (int h = 0; h < kHalvingSlots; ++h) tally->steps[size_t(h)] += uint32_t(n * r.limited_tries[size_t(h)]);
+}
+double mean_square(const Color& c) {  // over RGB, as the pixel statistics
+  return (double(c.x) * c.x + double(c.y) * c.y + double(c.z) * c.z) / 3.0;
+}
+void count_seed(int n, TrialTally* tally) {
+  if (tally)
+    for (auto& s : tally->steps) s += uint32_t(n);
+}
+}  // namespace
+
 bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
                            const std::vector<Vec2>& offsets, const ChainDistribution* guide,
-                           PCG32& rng, ManifoldChain& chain, std::string& tau, Stats& st) const {
+                           PCG32& rng, ManifoldChain& chain, std::string& tau, Stats& st,
+                           TrialTally* tally) const {
+  if (tally) *tally = TrialTally{};
   if (guide && rng.next_float() < p_.guide_fraction) {
     // Learned seed (MPG Sec. 5.5): tau ~ P_e(tau | n), omega_D ~ the vMF mixture of
     // (n, tau); one-sample MIS with the initial distribution below (Eq. 13).
@@ -164,14 +185,13 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     // iteration (the line search's rejected tries are not counted: see
     // walk_reprojections and design-notes, "Step control").
     st.walk_steps += uint64_t(n);
+    count_seed(n, tally);
     if (!walk_.trace_seed(xD, nD, to_d(dir), tau, chain, why, &offsets)) {
       st.walk_failures[size_t(why)]++;
       return false;
     }
     const WalkResult r = walk_.solve(chain);
-    st.walk_steps += uint64_t(n) * uint64_t(r.iterations);
-    st.walk_reprojections += uint64_t(r.reprojections);
-    st.walk_off_surface += uint64_t(r.off_surface);
+    count_walk(r, n, st, tally);
     if (!r.converged) {
       st.walk_failures[size_t(r.failure)]++;
       return false;
@@ -191,6 +211,7 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
   if (p_.mode == ChainParams::Mode::Sms) {
     tau = p_.tau;
     st.walk_steps += uint64_t(n);  // the traced seed
+    count_seed(n, tally);
     if (!walk_.trace_seed(xD, nD, dir, tau, chain, why, &offsets)) {
       st.walk_failures[size_t(why)]++;
       return false;
@@ -202,6 +223,7 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     chain.v.clear();
     tau.clear();
     st.walk_steps += uint64_t(n);  // the traced seed
+    count_seed(n, tally);
     DVec3 o = xD, on = nD, d = glm::normalize(dir);
     for (int i = 0; i < n; ++i) {
       const Vec3 of = offset_ray_origin(to_f(o), to_f(on), to_f(d));
@@ -234,9 +256,7 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     }
   }
   const WalkResult r = walk_.solve(chain);
-  st.walk_steps += uint64_t(n) * uint64_t(r.iterations);
-  st.walk_reprojections += uint64_t(r.reprojections);
-  st.walk_off_surface += uint64_t(r.off_surface);
+  count_walk(r, n, st, tally);
   if (!r.converged) {
     st.walk_failures[size_t(r.failure)]++;
     return false;
@@ -361,22 +381,78 @@ double ChainEstimator::pt_density(const ManifoldChain& c, const std::string& tau
   return b >= 0.0 ? b : 0.0;  // NaN: not shared
 }
 
+Round ChainEstimator::round(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
+                            const std::vector<Vec2>& offsets, const ChainDistribution* seed_guide,
+                            const std::string& tau_star, const DVec3& w_star, double beta, PCG32& rng,
+                            Stats& st, bool tally) const {
+  thread_local ManifoldChain other;
+  thread_local std::string tau2;
+  Round rd;
+  mis_round(beta, [&] { return rng.next_double(); }, [&] {
+    st.bernoulli_trials++;
+    rd.tried = true;
+    rd.hit = trial(xD, nD, lp, n, offsets, seed_guide, rng, other, tau2, st, tally ? &rd.tally : nullptr) &&
+             tau2 == tau_star && glm::length(glm::normalize(other.v[0].p - xD) - w_star) < p_.uniqueness_threshold;
+    return rd.hit;
+  });
+  return rd;
+}
+
 int ChainEstimator::mis_rounds(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
                                const std::vector<Vec2>& offsets, const ChainDistribution* seed_guide,
                                const std::string& tau_star, const DVec3& w_star, double beta,
-                               PCG32& rng, Stats& st, bool& capped) const {
-  ManifoldChain other;
-  std::string tau2;
+                               PCG32& rng, Stats& st, bool& capped, std::vector<Round>* rounds) const {
   return bernoulli_count(
       [&] {
         if (st.cancelled()) return true;  // the pass is dropped: any value will do
-        return mis_round(beta, [&] { return rng.next_double(); }, [&] {
-          st.bernoulli_trials++;
-          return trial(xD, nD, lp, n, offsets, seed_guide, rng, other, tau2, st) && tau2 == tau_star &&
-                 glm::length(glm::normalize(other.v[0].p - xD) - w_star) < p_.uniqueness_threshold;
-        });
+        const Round rd = round(xD, nD, lp, n, offsets, seed_guide, tau_star, w_star, beta, rng, st, rounds);
+        if (rounds) rounds->push_back(rd);
+        return !rd.tried || rd.hit;
       },
       p_.max_trials, capped);
+}
+
+void ChainEstimator::tally_limits(const TrialTally& first, const std::vector<Round>* rounds, const Color& X,
+                                  int K, double q, const std::function<Round()>& more, Stats& st,
+                                  bool pt) const {
+  // Under limit H (slot h) the walks are the full search's until H stops one
+  // (WalkResult::limited_tries): the first trial finds the same solution iff
+  // H >= its later_rejections, and a round succeeds iff its coin does or its
+  // trial finds the solution with later_rejections <= H. So X_H = X K_H / K
+  // (X is linear in K) with K_H the first such round, and its walks' steps are
+  // those of rounds 1..K_H under H. The expectations are the limited
+  // estimator's exactly; the rounds past K only feed these counts.
+  auto keeps = [](int later, int h) { return h == kFullSearch || later <= h; };
+  std::array<double, kHalvingSlots> steps{};
+  std::array<int, kHalvingSlots> KH{};
+  for (int h = 0; h < kHalvingSlots; ++h) steps[size_t(h)] = first.steps[size_t(h)];
+  const bool estimated = rounds != nullptr && K > 0;
+  int open = 0;  // limits still counting rounds
+  for (int h = 0; h < kHalvingSlots; ++h)
+    if (estimated && keeps(first.later_rejections, h)) { KH[size_t(h)] = -1; ++open; }
+  auto take = [&](const Round& rd, int index) {
+    for (int h = 0; h < kHalvingSlots; ++h) {
+      if (KH[size_t(h)] != -1) continue;
+      if (rd.tried) steps[size_t(h)] += rd.tally.steps[size_t(h)];
+      if (!rd.tried || (rd.hit && keeps(rd.tally.later_rejections, h))) {
+        KH[size_t(h)] = index;
+        --open;
+      }
+    }
+  };
+  int index = 0;
+  if (estimated)
+    for (const Round& rd : *rounds) take(rd, ++index);
+  // Past max_trials a limit's count stops there, as the estimator's would (capped).
+  while (open > 0 && index < p_.max_trials && !st.cancelled()) take(more(), ++index);
+  for (int h = 0; h < kHalvingSlots; ++h) {
+    if (KH[size_t(h)] == -1) KH[size_t(h)] = index;
+    (pt ? st.limit_pt_steps : st.limit_steps)[size_t(h)] += steps[size_t(h)];
+    if (!estimated || KH[size_t(h)] == 0) continue;
+    const double r = double(KH[size_t(h)]) / double(K);
+    const double m2 = r * r * mean_square(X) / q;
+    if (std::isfinite(m2)) (pt ? st.limit_pt_m2 : st.limit_m2)[size_t(h)] += m2;
+  }
 }
 
 int ChainEstimator::pt_densities(const SurfaceInteraction& sep, const BSDFContext& sep_ctx,
@@ -426,7 +502,7 @@ int ChainEstimator::pt_densities(const SurfaceInteraction& sep, const BSDFContex
 float ChainEstimator::pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx,
                                 uint32_t sep_depth, uint32_t max_depth, const SurfaceInteraction* verts,
                                 const std::string& tau, const SurfaceInteraction& light, PCG32& rng,
-                                Stats& st) const {
+                                Stats& st, const Color& unit) const {
   thread_local ManifoldChain c;
   thread_local std::vector<Vec2> offsets;
   LightPoint lp;
@@ -443,10 +519,26 @@ float ChainEstimator::pt_weight(const SurfaceInteraction& sep, const BSDFContext
   const DVec3 w_star = glm::normalize(c.v[0].p - c.xD);
   bool capped = false;
   const auto tb = Clock::now();
-  const int K = mis_rounds(c.xD, c.nD, lp, n, offsets, seed_guide, tau, w_star, a / (a + b), rng, st, capped);
+  thread_local std::vector<Round> rounds;
+  rounds.clear();
+  const double beta = a / (a + b);
+  const int K = mis_rounds(c.xD, c.nD, lp, n, offsets, seed_guide, tau, w_star, beta, rng, st, capped,
+                           p_.count_limits ? &rounds : nullptr);
   st.bernoulli_ns += ns_since(tb);
   if (capped) st.bernoulli_capped++;
-  return float(b / (a + b) * double(K));
+  const float w = float(b / (a + b) * double(K));
+  if (p_.count_limits) {
+    // The path tracer's share moves with the estimator's P under a limit
+    // (b / (a P_H + b)): its value unit x w, counted as the estimates' are.
+    const Color Y = unit * w;
+    if (const double m2 = mean_square(Y); std::isfinite(m2)) st.pt_shared_m2 += m2;
+    Stats scratch;   // the extra rounds stay out of the pass's statistics
+    scratch.cancel = st.cancel;
+    tally_limits(TrialTally{}, &rounds, Y, K, 1.0, [&] {
+      return round(c.xD, c.nD, lp, n, offsets, seed_guide, tau, w_star, beta, rng, scratch, true);
+    }, st, true);
+  }
+  return w;
 }
 
 bool ChainEstimator::mis_pair(const Vec3& o, const Vec3& d, const Vec3& omega_D, const Vec3& seed_dir,
@@ -510,6 +602,9 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
   const DVec3 xD = to_d(si.p), nD = to_d(si.ng);
   ManifoldChain chain;
   std::string tau;
+  TrialTally first;          // count_limits: the first trial's work under each limit
+  bool tried_first = false, tallied = false;
+  thread_local std::vector<Round> rounds;
   do {
     if (!sample_light(rng, lp)) break;
     // The leaf of (x_D, x_L): learned distribution, and selective activation.
@@ -541,7 +636,9 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     offsets.resize(static_cast<size_t>(n));
     for (auto& o : offsets) o = Vec2(rng.next_float(), rng.next_float());
     const ChainDistribution* seed_guide = (guide && (p_.guide_tau || p_.guide_dir)) ? guide : nullptr;
-    if (!trial(xD, nD, lp, n, offsets, seed_guide, rng, chain, tau, st)) break;
+    tried_first = true;
+    if (!trial(xD, nD, lp, n, offsets, seed_guide, rng, chain, tau, st, p_.count_limits ? &first : nullptr))
+      break;
     st.chain_converged++;
     const ManifoldVertex& last = chain.v.back();
     // One-sided area light; visibility of the last segment (the others are first hits).
@@ -580,7 +677,9 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     const std::string tau_star = tau;
     bool capped = false;
     const auto tb = Clock::now();
-    const int K = mis_rounds(xD, nD, lp, n, offsets, seed_guide, tau_star, w_star, a / (a + b), rng, st, capped);
+    rounds.clear();
+    const int K = mis_rounds(xD, nD, lp, n, offsets, seed_guide, tau_star, w_star, a / (a + b), rng, st, capped,
+                             p_.count_limits ? &rounds : nullptr);
     st.bernoulli_ns += ns_since(tb);
     if (capped) st.bernoulli_capped++;
     if (p_.record && !capped) {
@@ -613,11 +712,26 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     // The largest estimate as it enters the sample: after the roulette's 1/q
     // (path.cpp takes q the same way), where low rates make the fireflies.
     const double q = st.pixel_chain_rate >= 0.f ? double(st.pixel_chain_rate) : double(p_.chain_rate);
+    if (p_.count_limits) {
+      // The second moment X^2 / q (mean over RGB) this estimate adds to its
+      // sample, and what it would have been, and cost, under each limit.
+      const double m2 = mean_square(result) / std::max(q, 1e-6);
+      if (std::isfinite(m2)) st.chain_m2 += m2;
+      Stats scratch;   // the extra rounds stay out of the pass's statistics
+      scratch.cancel = st.cancel;
+      const double beta = a / (a + b);
+      tally_limits(first, &rounds, result, K, std::max(q, 1e-6), [&] {
+        return round(xD, nD, lp, n, offsets, seed_guide, tau_star, w_star, beta, rng, scratch, true);
+      }, st);
+      tallied = true;
+    }
     if (const double v = double(luminance(result)) / std::max(q, 1e-6); v > st.max_chain_value) {
       st.max_chain_value = v; st.max_chain_K = K; st.max_chain_G = G; st.max_chain_pn = pn;
       st.max_chain_n = n; st.max_chain_guided = guide ? 1.0 : 0.0; st.max_chain_rate = q;
     }
   } while (false);
+  // An estimate that ended after its first trial: the same nothing under every limit, at its cost.
+  if (p_.count_limits && tried_first && !tallied) tally_limits(first, nullptr, Color(0.f), 0, 1.0, {}, st);
   st.chain_ns += ns_since(t0);
   // + 1: an estimate's own work (light sample, leaf query, G, the light's shadow ray)
   st.chain_steps += st.walk_steps - steps0 + 1;

@@ -20,6 +20,8 @@
 // (pt_weight; docs/design-notes.md, "Chain paths shared with the path tracer").
 #pragma once
 
+#include <array>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -57,6 +59,21 @@ int bernoulli_count(F&& matches, int max_trials, bool& capped) {
   }
 }
 
+// A trial's work in vertex steps (the traced seed and each line-search try)
+// under each line-search limit (WalkResult::limited_tries), and the most tries
+// one of its walk's later iterations rejected (a limit H keeps its solution iff
+// H >= that): for ChainParams::count_limits.
+struct TrialTally {
+  int later_rejections = 0;
+  std::array<uint32_t, kHalvingSlots> steps{};
+};
+// One round of a Bernoulli count: an immediate success of the MIS-aware coin
+// (tried = false), or a trial and whether it found the solution.
+struct Round {
+  bool tried = false, hit = false;
+  TrialTally tally;
+};
+
 struct ChainParams {
   enum class Mode { Sms, SmsStar };
   Mode mode = Mode::SmsStar;
@@ -73,6 +90,7 @@ struct ChainParams {
   float guide_fraction = 0.5f;     // alpha of Eq. 13
   bool selective = false;          // chains only where the leaf holds unfiltered samples (off: the MPG paper's comparisons)
   bool record = false;             // store SubpathSamples in Stats::subpaths
+  bool count_limits = false;       // Stats::limit_m2 / limit_steps (mpg's training, step_halvings=auto)
   bool product = false;            // product sampling with the separator's BSDF (MPG Eq. 14)
   bool guide_n = true, guide_tau = true, guide_dir = true;  // ablation switches
   // Share the chain paths the path tracer can also reach (smooth chains to area
@@ -124,10 +142,12 @@ class ChainEstimator {
   // active_for() hold: an unbiased estimate of b / (a P + b), the path
   // tracer's balance-heuristic weight (docs/design-notes.md, "Chain paths shared
   // with the path tracer"), or 0 when the estimator takes the path whole (mis
-  // off, glossy or normal-mapped vertices, a degenerate chain).
+  // off, glossy or normal-mapped vertices, a degenerate chain). `unit`: the
+  // path's value before the weight (count_limits tallies unit x weight).
   float pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx, uint32_t sep_depth,
                   uint32_t max_depth, const SurfaceInteraction* verts, const std::string& tau,
-                  const SurfaceInteraction& light, PCG32& rng, Stats& st) const;
+                  const SurfaceInteraction& light, PCG32& rng, Stats& st,
+                  const Color& unit = Color(0.f)) const;
 
   // Test entry point: the densities a (estimator, without P) and b (path
   // tracer) of one path as each side computes them. The path tracer's path
@@ -159,7 +179,8 @@ class ChainEstimator {
   // One trial: seed + walk. Fills chain and tau on success.
   bool trial(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
              const std::vector<Vec2>& offsets, const ChainDistribution* guide, PCG32& rng,
-             ManifoldChain& chain, std::string& tau, Stats& st) const;
+             ManifoldChain& chain, std::string& tau, Stats& st,
+             TrialTally* tally = nullptr) const;
   Color kappa(const ManifoldChain& chain, const std::string& tau) const;
   // The leaf of (x_D, x_L), or null (no guide, or an empty leaf).
   const ChainDistribution* guide_at(const Vec3& xD, const Vec3& xL, Stats* st) const;
@@ -185,10 +206,22 @@ class ChainEstimator {
   // K' of the MIS-aware Bernoulli process: each round, with probability beta a
   // trial that succeeds iff it finds (tau*, omega*), otherwise an immediate
   // success; E[K'] = 1 / (beta P + 1 - beta). beta = 1: SMS's K, E = 1/P.
+  // One round of it (tally: fill the trial's TrialTally).
+  Round round(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
+              const std::vector<Vec2>& offsets, const ChainDistribution* seed_guide,
+              const std::string& tau_star, const DVec3& w_star, double beta, PCG32& rng, Stats& st,
+              bool tally) const;
   int mis_rounds(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
                  const std::vector<Vec2>& offsets, const ChainDistribution* seed_guide,
                  const std::string& tau_star, const DVec3& w_star, double beta, PCG32& rng,
-                 Stats& st, bool& capped) const;
+                 Stats& st, bool& capped, std::vector<Round>* rounds = nullptr) const;
+  // count_limits: the estimate (value X, K rounds, its first trial and rounds)
+  // as it would have been under each line-search limit (Stats::limit_m2,
+  // limit_steps; pt: the path tracer's share of a shared path, limit_pt_*),
+  // running further rounds, outside the stats, where a limit's count would go
+  // on past K.
+  void tally_limits(const TrialTally& first, const std::vector<Round>* rounds, const Color& X, int K,
+                    double q, const std::function<Round()>& more, Stats& st, bool pt = false) const;
 
   const Scene& scene_;
   ChainParams p_;

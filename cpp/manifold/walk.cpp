@@ -541,7 +541,27 @@ bool ManifoldWalk::reproject(const ManifoldChain& from, const std::vector<DVec3>
   return true;
 }
 
+namespace {
+// An iteration after the first whose line search rejected `rejected` tries
+// stops the walks limited to fewer halvings (WalkResult::limited_tries): each
+// such limit H, not yet stopped, ends here after H + 1 tries of this iteration.
+void note_rejections(WalkResult& res, int iteration, int tries_before, int rejected) {
+  if (iteration == 0) return;
+  for (int h = res.later_rejections; h < std::min(rejected, kFullSearch); ++h)
+    res.limited_tries[size_t(h)] = tries_before + h + 1;
+  res.later_rejections = std::max(res.later_rejections, rejected);
+}
+}  // namespace
+
 WalkResult ManifoldWalk::solve(ManifoldChain& chain) const {
+  WalkResult res = solve_walk(chain);
+  // The limits that never stopped the walk take all of its tries.
+  for (int h = std::min(res.later_rejections, kFullSearch); h < kHalvingSlots; ++h)
+    res.limited_tries[size_t(h)] = res.reprojections;
+  return res;
+}
+
+WalkResult ManifoldWalk::solve_walk(ManifoldChain& chain) const {
   WalkResult res;
   const size_t n = chain.v.size();
   if (n == 0) {
@@ -586,6 +606,7 @@ WalkResult ManifoldWalk::solve(ManifoldChain& chain) const {
     const double floor_it = it == 0 || cfg_.step_halvings < 0
                                 ? cfg_.min_step
                                 : std::max(cfg_.min_step, std::ldexp(beta, -cfg_.step_halvings));
+    const int tries_before = res.reprojections;
     while (!accepted) {
       double moved = 0.0;
       for (size_t i = 0; i < n; ++i) {
@@ -595,6 +616,7 @@ WalkResult ManifoldWalk::solve(ManifoldChain& chain) const {
         moved = std::max(moved, glm::length(targets[i] - chain.v[i].p));
       }
       if (moved < 1e-12 * scale) {
+        note_rejections(res, it, tries_before, res.reprojections - tries_before);
         res.failure = WalkFailure::Stuck;
         res.iterations = it + 1;
         return res;
@@ -616,12 +638,14 @@ WalkResult ManifoldWalk::solve(ManifoldChain& chain) const {
       } else {
         beta *= 0.5;
         if (beta < floor_it) {
+          note_rejections(res, it, tries_before, res.reprojections - tries_before);
           res.failure = why == WalkFailure::None ? WalkFailure::StepTooSmall : why;
           res.iterations = it + 1;
           return res;
         }
       }
     }
+    note_rejections(res, it, tries_before, res.reprojections - tries_before - 1);
     res.iterations = it + 1;
     if (cfg_.record_residuals) res.residuals.push_back(err);
   }

@@ -11,6 +11,7 @@
 
 #include <glm/glm.hpp>
 
+#include <array>
 #include <string>
 #include <vector>
 
@@ -93,12 +94,24 @@ struct ManifoldChain {
   std::vector<ManifoldVertex> v;
 };
 
+// What a walk would have done under each step_halvings limit H = 0 .. 10,
+// read off one walk (exact for the full search, and for H below an active
+// limit): the limit stops the walk at the first iteration after the first
+// whose line search rejects more than H tries, after H + 1 of them. The last
+// slot, kFullSearch, is the walk as configured. With the default min_step,
+// H = 10 is the full search too. mpg's training picks its render's limit from
+// these (ChainParams::count_limits; design-notes "Step control").
+inline constexpr int kHalvingSlots = 12;
+inline constexpr int kFullSearch = kHalvingSlots - 1;
+
 struct WalkResult {
   bool converged = false;
   WalkFailure failure = WalkFailure::None;
   int iterations = 0;
   int reprojections = 0;  // line-search tries (each reprojects every vertex)
   int off_surface = 0;    // of which: the moved chain did not land on its shapes
+  int later_rejections = 0;  // the most rejected tries of one iteration after the first
+  std::array<int, kHalvingSlots> limited_tries{};  // tries under step_halvings = H; [kFullSearch]: all
   std::vector<double> residuals;  // max |C| per iteration (for the convergence tests)
 };
 
@@ -152,6 +165,7 @@ class ManifoldWalk {
   static ManifoldVertex moved(const ManifoldVertex& v, double du, double dv);
 
  private:
+  WalkResult solve_walk(ManifoldChain& chain) const;  // solve() without the limits' tail
   bool reproject(const ManifoldChain& from, const std::vector<DVec3>& targets, ManifoldChain& out,
                  WalkFailure& why) const;
   const Scene& scene_;

@@ -10,6 +10,7 @@
 
 #include "core/math.h"
 #include "guiding/subpath_sample.h"
+#include "manifold/walk.h"
 
 namespace mpg {
 
@@ -72,6 +73,15 @@ struct Stats {
   uint64_t walk_reprojections = 0;   // line-search tries of the walks (each reprojects the chain)
   uint64_t walk_off_surface = 0;     // of which: the moved chain did not land on its shapes
   uint64_t chain_steps = 0;          // of which: inside chain estimates (not the path tracer's MIS rounds)
+  // ChainParams::count_limits (mpg's training under step_halvings=auto): the
+  // chain estimates' second moment, sum of X^2 / q (mean over RGB; q the
+  // roulette's rate), and, for each line-search limit H (slot H = 0..10;
+  // kFullSearch: the walk as configured), the same sum and the estimates' walk
+  // steps had the walks run under that limit (ChainEstimator::tally_limits).
+  // The same for the path tracer's shares of shared chain paths (pt_weight:
+  // b / (a P + b) moves with the estimator's P), at full weight (no rate).
+  double chain_m2 = 0.0, pt_shared_m2 = 0.0;
+  std::array<double, kHalvingSlots> limit_m2{}, limit_steps{}, limit_pt_m2{}, limit_pt_steps{};
   std::array<uint64_t, 11> walk_failures{};  // by WalkFailure
   // guiding (mpg)
   uint64_t guided_trials = 0;        // trials whose seed came from the learned distribution
@@ -96,6 +106,14 @@ struct Stats {
     bernoulli_ns += o.bernoulli_ns; guide_ns += o.guide_ns;
     walk_steps += o.walk_steps; walk_reprojections += o.walk_reprojections; walk_off_surface += o.walk_off_surface; chain_steps += o.chain_steps;
     for (size_t i = 0; i < walk_failures.size(); ++i) walk_failures[i] += o.walk_failures[i];
+    chain_m2 += o.chain_m2;
+    pt_shared_m2 += o.pt_shared_m2;
+    for (size_t h = 0; h < limit_m2.size(); ++h) {
+      limit_m2[h] += o.limit_m2[h];
+      limit_steps[h] += o.limit_steps[h];
+      limit_pt_m2[h] += o.limit_pt_m2[h];
+      limit_pt_steps[h] += o.limit_pt_steps[h];
+    }
     guided_trials += o.guided_trials;
     chain_inactive += o.chain_inactive;
     chain_skipped += o.chain_skipped;
@@ -108,7 +126,7 @@ struct Stats {
     }
   }
   std::map<std::string, double> to_map() const {
-    return {{"samples", double(samples)},           {"camera_rays", double(camera_rays)},
+    std::map<std::string, double> m = {{"samples", double(samples)},           {"camera_rays", double(camera_rays)},
             {"rays", double(rays)},                 {"shadow_rays", double(shadow_rays)},
             {"rejected_nan", double(rejected_nan)}, {"rejected_inf", double(rejected_inf)},
             {"rejected_negative", double(rejected_negative)},
@@ -129,7 +147,15 @@ struct Stats {
             {"max_chain_value", max_chain_value}, {"max_chain_K", max_chain_K},
             {"max_chain_G", max_chain_G}, {"max_chain_pn", max_chain_pn},
             {"max_chain_n", max_chain_n}, {"max_chain_guided", max_chain_guided},
-            {"max_chain_rate", max_chain_rate}};
+            {"max_chain_rate", max_chain_rate}, {"chain_m2", chain_m2}, {"pt_shared_m2", pt_shared_m2}};
+    for (size_t h = 0; h < limit_m2.size(); ++h) {
+      const std::string slot = h == size_t(kFullSearch) ? "full" : std::to_string(h);
+      m["limit_m2_" + slot] = limit_m2[h];
+      m["limit_steps_" + slot] = limit_steps[h];
+      m["limit_pt_m2_" + slot] = limit_pt_m2[h];
+      m["limit_pt_steps_" + slot] = limit_pt_steps[h];
+    }
+    return m;
   }
 };
 

@@ -258,10 +258,27 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
             # map without rate 0, and that map with every eligible pixel at 0
             cands = [(q, pt), fixed_point(True), (q, eligible.copy())]
             q, pt = min(cands, key=model_f)
+    v_model, c_model = means(q, pt)
     # pixels without chain work keep 1: the rate is never used there
     q = np.where(has & np.isfinite(q), q, 1.0)
     q = np.where(pt, 0.0, q)
     on = has & ~pt
+    # How a change of the chain estimates' second moment (dM, summed over
+    # pixels, at rate 1) and of their walks' work (dS, at the training rate)
+    # carries over to the render's map: mean(wV) moves by dM m_scale / pixels
+    # and mean(C) by dS s_scale / pixels, taking both to fall on the pixels as
+    # the training's M and chain work do; w_scale weighs the path tracer's
+    # shares of shared paths, which no rate scales (mpg.guiding.choose_step_halvings).
+    qs = np.where(on, q, 1.0)
+    m_tot, c_tot = float(np.sum(m2_raw)), float(np.sum(c1))
+    info.update(
+        chain_rate_model_v=v_model, chain_rate_model_c=c_model,
+        chain_rate_m_scale=float(np.sum(np.where(on, wgt * m2_raw / qs, 0.0))) / m_tot if m_tot > 0 else 0.0,
+        # ... and the path tracer's shares of shared paths (no rate; none at rate 0)
+        chain_rate_w_scale=float(np.sum(np.where(on, wgt * m2_raw, 0.0))) / m_tot if m_tot > 0 else 0.0,
+        chain_rate_s_scale=(float(np.sum(np.where(on, q * c1, 0.0))) / c_tot if c_tot > 0 else 0.0)
+        / float(np.mean(np.maximum(q_t, 1e-3))),
+    )
     info.update(
         chain_rate_learned=True,
         chain_rate_mean=float(np.mean(q[on])) if np.any(on) else 1.0,

@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, CostAccumulator, learn_delta_split, learn_pixel_split,
-                             learn_rates)
+from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, STEP_COST, CostAccumulator, learn_delta_split,
+                             learn_pixel_split, learn_rates)
 from mpg.errors import RenderError
 
 
@@ -35,10 +35,66 @@ def _split_setting(name: str, value, words: tuple[str, ...]):
     return k
 
 
+# Time of one line-search try per chain vertex (a reprojected vertex) in units of
+# one path-tracer ray: bench/step_cost.py counting every try measured 2.1-3.9 on
+# sphere, double_slabs, chain_length_4, emitter_size_003 and visibility_4.
+TRY_COST = 2.5
+# A line-search limit is used only where it promises at least this much lower
+# variance x work than the full search (the prediction is from a few spp).
+LIMIT_MARGIN = 0.05
+HALVING_LIMITS = range(11)   # the limits the core counts (kHalvingSlots - 1)
+
+
+def choose_step_halvings(stats: dict, n: int, variance: float, work: float, m_scale: float,
+                         s_scale: float, w_scale: float = 1.0,
+                         margin: float = LIMIT_MARGIN) -> tuple[int, dict]:
+    """The render's line-search limit (`step_halvings`) from training passes
+    run with count_limits (Stats limit_*, summed over n spp).
+
+    Under limit H the chain estimates' second moment at rate 1 changes by dM_H,
+    the path tracer's shares of shared paths (b / (a P + b) moves with P) by
+    dP_H, and the walks' steps by dS_H (estimates) and dT_H (the path tracer's
+    weight rounds): ChainEstimator::tally_limits gives the limited estimator's
+    own expectations from the full search's walks and extra Bernoulli rounds.
+    The mean does not change (every limit is unbiased), so, to first order
+    (cross terms left out), the render's variance x work (`variance`, `work`:
+    a sample's, summed over pixels, at the render's rates; with learned rates
+    their objective's weighted variance) changes by
+        r_H = (1 + (m_scale dM_H + w_scale dP_H) / (n variance))
+              (1 + TRY_COST (s_scale dS_H + dT_H) / (n work)),
+    the scales carrying the training's rate over to the render's (1/q, 1, 1 at
+    one fixed rate q; chain_rates.learn_rates for learned ones). The H with the
+    smallest r_H is used if r_H < 1 - margin, else the full search (-1).
+    Returns (H, info)."""
+    info: dict[str, Any] = {"step_halvings_mode": "auto", "step_halvings": -1, "step_halvings_predicted": 1.0}
+
+    def delta(key: str, h: int) -> float:
+        full = stats.get(f"{key}_full", 0.0)
+        return stats.get(f"{key}_{h}", full) - full
+
+    if n < 1 or not (variance > 0.0) or not (work > 0.0) or not (stats.get("limit_steps_full", 0.0) > 0.0):
+        return -1, info
+    ratios, dv, dw = [], [], []
+    for h in HALVING_LIMITS:
+        dv.append((m_scale * delta("limit_m2", h) + w_scale * delta("limit_pt_m2", h)) / n / variance)
+        dw.append(TRY_COST * (s_scale * delta("limit_steps", h) + delta("limit_pt_steps", h)) / n / work)
+        r = (1.0 + dv[-1]) * (1.0 + dw[-1])
+        ratios.append(float(r) if np.isfinite(r) else float("inf"))
+    best = int(np.argmin(ratios))
+    info["step_halvings_ratios"] = [round(r, 4) for r in ratios]
+    # the predicted relative changes of variance and of work, per limit
+    info["step_halvings_dvariance"] = [round(float(x), 4) for x in dv]
+    info["step_halvings_dwork"] = [round(float(x), 4) for x in dw]
+    if ratios[best] < 1.0 - margin:
+        info.update(step_halvings=best, step_halvings_predicted=ratios[best])
+        return best, info
+    return -1, info
+
+
 def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
                seed: int, threads: int | None, progress: bool | None):
     from mpg import _core
-    from mpg.render import render
+    from mpg.render import _as_bool, render
 
     frac = float(params.pop("training_fraction", 0.3))
     c = float(params.pop("stree_c", 1.0))
@@ -87,6 +143,15 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         if not 1e-3 <= v <= 1.0:
             raise RenderError(f"{nm} must be in [0.001, 1], got {v}")
     params["chain_rate"] = q_train if auto else rate
+    # step_halvings: "auto" (the default) chooses the render's line-search limit
+    # from the training passes (choose_step_halvings), which run the full search
+    halvings = params.pop("step_halvings", "auto")
+    auto_halvings = halvings == "auto"
+    # ... re-chosen after each training iteration; with limit_in_training (the
+    # default) the next iterations walk under the choice, which can then only
+    # tighten (the counts under limit H judge the limits below it alone)
+    limit_in_training = _as_bool("limit_in_training", params.pop("limit_in_training", True))
+    params["step_halvings"] = -1 if auto_halvings else int(halvings)
     init = str(params.pop("init", "surface"))
     n_photons = int(params.pop("photons", 200_000))
     if not 0.0 <= frac < 1.0:
@@ -130,6 +195,39 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         handoff_note = "off: the scene has a point or spot chain light"
     else:
         handoff_note = "on" if handoff else "off"
+    tsum = tsum2 = None   # the training samples' sums and stats, for the line-search limit
+    tstats: dict[str, float] = {}
+    tstats_n = 0
+    halvings_history: list[int] = []
+    halvings_info: dict[str, Any] = {"step_halvings": params["step_halvings"],
+                                     "step_halvings_mode": "auto" if auto_halvings else "fixed"}
+    if auto_halvings:
+        halvings_info["step_halvings_predicted"] = 1.0
+
+    def decide_halvings(counts: dict, n: int, tsum, tsum2, n_all: int):
+        """(H, info) from `counts` (limit_* and work stats over n spp) and the
+        training so far; None while too little is known."""
+        if costs is not None:
+            if costs.n < 2:
+                return None
+            qm, ri = learn_rates(costs, q_min=q_min, objective=objective, handoff=handoff,
+                                 negligible=negligible)
+            if not ri.get("chain_rate_learned"):
+                return None
+            # the learned rates' model: mean(wV), mean(C) over pixels at the render's map
+            pixels = float(qm.size)
+            return choose_step_halvings(counts, n, ri["chain_rate_model_v"] * pixels,
+                                        ri["chain_rate_model_c"] * pixels, ri["chain_rate_m_scale"],
+                                        ri["chain_rate_s_scale"], ri["chain_rate_w_scale"])
+        if tsum is None or n_all < 2:
+            return None
+        # one rate q in training and render: the training samples' own variance and work
+        mean = np.nan_to_num(tsum) / n_all
+        variance = float(np.sum(np.maximum(np.nan_to_num(tsum2) / n_all - mean * mean, 0.0).mean(axis=2))
+                         * n_all / (n_all - 1))
+        work = (counts.get("rays", 0.0) + STEP_COST * counts.get("walk_steps", 0.0)) / n
+        return choose_step_halvings(counts, n, variance, work, 1.0 / float(params["chain_rate"]), 1.0, 1.0)
+
     if probe.chains_active and frac > 0.0:
         budget_spp = None if spp is None else max(0, int(frac * spp))
         budget_t = None if time is None else frac * time
@@ -166,7 +264,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             # Training passes run at chain_rate_train under "auto", at the render's
             # rate otherwise (measured on sphere, 3 seeds x 30 s, when one rate of
             # 1/8 was the default: MSE 0.034 training at 1/8, 0.044 at 1).
-            integ = _core.make_integrator(core, "mpg", dict(params, record=True, guide=guide))
+            integ = _core.make_integrator(core, "mpg", dict(params, record=True, guide=guide,
+                                                            count_limits=auto_halvings))
             job = _core.RenderJob(core, integ, k, seed, 1_000_000 + iterations, threads or 0,
                                   record_costs=auto)
             while not job.wait(0.05):
@@ -179,6 +278,26 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             iterations += 1
             if costs is not None:
                 costs.add(r, k, params["chain_rate"])
+            if auto_halvings:
+                tsum = r["sum"] if tsum is None else tsum + r["sum"]
+                tsum2 = r["sum_sq"] if tsum2 is None else tsum2 + r["sum_sq"]
+                for key, v in r["stats"].items():
+                    if key.startswith("limit_") or key in ("rays", "walk_steps"):
+                        tstats[key] = tstats.get(key, 0.0) + v
+                tstats_n += k
+                decided = decide_halvings(tstats, tstats_n, tsum, tsum2, spp_train)
+                if decided is not None:
+                    h, halvings_info = decided
+                    cur = params["step_halvings"]
+                    if cur >= 0 and h < 0:
+                        # counted under limit cur: no larger limit (nor none) can be judged
+                        h = cur
+                        halvings_info.update(step_halvings=cur)
+                    halvings_history.append(h)
+                    if limit_in_training and h != cur:
+                        # the next iterations walk under h; count afresh from them
+                        params["step_halvings"] = h
+                        tstats, tstats_n = {}, 0
             last_iter_t = _time.monotonic() - iter_t0
             buf = r["subpaths"]
             samples_last = len(buf)
@@ -232,6 +351,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     elif isinstance(psplit, int) and psplit > 1:
         smap = uniform(psplit)
         rate_info.update(pixel_split_fraction=1.0, pixel_split_mean=float(psplit))
+    if auto_halvings:
+        params["step_halvings"] = halvings_info["step_halvings"]
     seconds_training = _time.monotonic() - t0
     rest_spp = None if spp is None else max(1, spp - spp_train)
     rest_t = None if time is None else max(0.05, time - seconds_training)
@@ -243,6 +364,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["integrator"] = "mpg"
     st["integrator_params"] = {k: v for k, v in params.items() if k != "guide"}
     st["integrator_params"]["chain_rate"] = rate
+    st["integrator_params"]["step_halvings"] = halvings
+    st.update(halvings_info)
+    if auto_halvings:
+        st["step_halvings_history"] = halvings_history   # the choice after each training iteration
     st["chain_rate_mode"] = "per-pixel" if qmap is not None else "fixed"
     st["chain_handoff"] = handoff_note if qmap is not None else "off"
     # per-pixel: mean over the pixels with chain work; fixed: the rate used

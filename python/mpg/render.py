@@ -28,9 +28,9 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
                 "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff",
                 "chain_handoff_negligible",
-                "delta_split", "pixel_split"}
+                "delta_split", "pixel_split", "limit_in_training"}
 BOOL_PARAMS = {"hide_emitters", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
-               "mis", "chain_handoff"}
+               "mis", "chain_handoff", "limit_in_training"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
 # The SMS paper's integrators, with their parameter names, map onto `sms`.
 SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
@@ -99,6 +99,12 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
     core_params = {k: v for k, v in params.items() if k in allowed}
     for k in ("max_chain", "max_trials", "max_iterations", "step_halvings", "max_depth",
               "rr_depth", "stree_threshold", "knn_k", "photons"):
+        if k == "step_halvings" and str(core_params.get(k)).strip().lower() == "auto":
+            if name != "mpg" or "guide" in core_params:
+                raise RenderError("step_halvings 'auto' is chosen by mpg's training loop; "
+                                  f"with {'a given guide' if name == 'mpg' else repr(name)} it must be an integer")
+            core_params[k] = "auto"   # mpg: the line-search limit chosen in training (mpg.guiding)
+            continue
         if k in core_params:
             try:
                 core_params[k] = int(core_params[k])
@@ -392,7 +398,8 @@ def render(
         "rejected_samples": rejected,
         "samples_per_second": stats.get("samples", 0.0) / elapsed if elapsed > 0 else 0.0,
         "warnings": list(scene.warnings) + warnings,
-        **{k: (float(v) if k.startswith("max_chain_") else int(v)) for k, v in stats.items()},
+        **{k: (float(v) if k.startswith(("max_chain_", "chain_m2", "pt_shared_m2", "limit_")) else int(v))
+           for k, v in stats.items()},
     }
     return Image(rgb=mean.astype(np.float32), variance=var.astype(np.float32), spp=done,
                  stats=out_stats)
