@@ -7,6 +7,10 @@ per-pixel chain rates.
 Per scene (128^2, one thread, so that wall time is CPU time): `sms_star` gives
 ns per chain step (stat chain_ns / chain_steps), `path` gives ns per ray (wall
 time / camera + extension + shadow rays); their ratio is a step's cost in rays.
+A chain step counts the traced seed and the accepted Newton iterations only;
+a third render with count_limits counts every tried vertex (the seed and each
+line-search try, stat limit_steps_full) on the same kind of paths, which
+gives the cost of a tried vertex in rays: mpg.guiding.TRY_COST.
 Writes bench/results/step_cost.json."""
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 def main() -> int:
     import mpg
+    from mpg import _core
     from mpg.bench.scenes import resolve_scene
 
     ap = argparse.ArgumentParser()
@@ -40,8 +45,16 @@ def main() -> int:
         wall = time.perf_counter() - t
         ns_step = chain["chain_ns"] / max(chain["chain_steps"], 1)
         ns_ray = wall * 1e9 / (path["rays"] + path["shadow_rays"] + path["camera_rays"])
-        out["scenes"][name] = {"ns_per_chain_step": ns_step, "ns_per_ray": ns_ray, "ratio": ns_step / ns_ray}
-        print(f"{name:18s} {ns_step:8.1f} ns/step {ns_ray:7.1f} ns/ray  ratio {ns_step / ns_ray:.2f}")
+        # tried vertices per chain step, counted (not timed: the counting adds rounds)
+        integ = _core.make_integrator(sc.core, "sms_star", {"count_limits": True})
+        job = _core.RenderJob(sc.core, integ, args.spp, 1, 0, 1)
+        job.wait(1e9)
+        cl = job.result()["stats"]
+        tried = cl["limit_steps_full"] / max(cl["chain_steps"], 1)
+        out["scenes"][name] = {"ns_per_chain_step": ns_step, "ns_per_ray": ns_ray, "ratio": ns_step / ns_ray,
+                               "tried_per_chain_step": tried, "try_ratio": ns_step / tried / ns_ray}
+        print(f"{name:18s} {ns_step:8.1f} ns/step {ns_ray:7.1f} ns/ray  ratio {ns_step / ns_ray:.2f}"
+              f"  tried vertices/step {tried:.2f}  ratio per tried vertex {ns_step / tried / ns_ray:.2f}")
     res = ROOT / "bench" / "results"
     res.mkdir(parents=True, exist_ok=True)
     (res / "step_cost.json").write_text(json.dumps(out, indent=2))

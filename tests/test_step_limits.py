@@ -81,8 +81,8 @@ def test_the_predicted_work_of_a_limit_is_what_it_costs(scenes_dir):
     """The counterfactual is an expectation of the limited estimator: the walk
     steps predicted for limit H by full-search renders match renders run under
     H (other seeds). 12 renders each side, 24^2 x 64 spp of the slab; the
-    per-render spread of the steps is ~1-2 % (measured), so the means agree
-    within 5 standard errors (measured: 0.4 % and 0.3 % apart over 16)."""
+    steps of one render spread ~1-2 %, and the means must agree within 5
+    standard errors."""
     sc = mpg.load_file(scenes_dir / "slab_glass.xml", res="24")
 
     def steps(h, seed, slot):
@@ -133,7 +133,8 @@ def test_mpg_keeps_the_full_search_near_a_mirror_and_limits_it_on_the_slab(scene
     sc = mpg.load_string(mirror_scene(32, 0.95))
     st = mpg.render(sc, integrator="mpg", spp=64, seed=1, progress=False).stats
     assert st["step_halvings_mode"] == "auto" and st["step_halvings"] == -1
-    assert st["step_halvings_ratios"][0] > 1.5 and set(st["step_halvings_history"]) == {-1}
+    r0 = st["step_halvings_ratios"][0]   # None: censored, left out of the choice
+    assert (r0 is None or r0 > 1.5) and set(st["step_halvings_history"]) == {-1}
     sc = mpg.load_file(scenes_dir / "slab_glass.xml", res="32")
     for lit in (True, False):
         st = mpg.render(sc, integrator={"type": "mpg", "limit_in_training": lit}, spp=64, seed=1,

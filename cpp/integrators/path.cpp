@@ -122,7 +122,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       if (q <= 0.f) {
         st.chain_handed++;
       } else if (q >= 1.f || rng.next_float() < q) {
-        const Color X = beta * chains_->estimate(si, ctx, depth, max_depth, rng, st);
+        const Color X = beta * chains_->estimate(si, ctx, depth, max_depth, rng, st, beta);
         L += X * (1.f / q);
         st.sample_alt_delta -= X * (1.f / q);
         // (a non-finite X rejects the whole sample, render.cpp: not counted here)

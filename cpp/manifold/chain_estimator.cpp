@@ -443,10 +443,17 @@ void ChainEstimator::tally_limits(const TrialTally& first, const std::vector<Rou
   int index = 0;
   if (estimated)
     for (const Round& rd : *rounds) take(rd, ++index);
-  // Past max_trials a limit's count stops there, as the estimator's would (capped).
-  while (open > 0 && index < p_.max_trials && !st.cancelled()) take(more(), ++index);
+  // The extra rounds stop at 16 K + 64 (and max_trials): a limit that finds the
+  // solution that much less often is counted as censored, and mpg's choice
+  // leaves it out (a limit under which P_H ~ 0 would otherwise run up to
+  // max_trials walks per estimate in training).
+  const int cap = std::min(p_.max_trials, 16 * K + 64);
+  while (open > 0 && index < cap && !st.cancelled()) take(more(), ++index);
   for (int h = 0; h < kHalvingSlots; ++h) {
-    if (KH[size_t(h)] == -1) KH[size_t(h)] = index;
+    if (KH[size_t(h)] == -1) {
+      KH[size_t(h)] = index;
+      st.limit_censored[size_t(h)]++;
+    }
     (pt ? st.limit_pt_steps : st.limit_steps)[size_t(h)] += steps[size_t(h)];
     if (!estimated || KH[size_t(h)] == 0) continue;
     const double r = double(KH[size_t(h)]) / double(K);
@@ -590,7 +597,7 @@ bool ChainEstimator::mis_pair(const Vec3& o, const Vec3& d, const Vec3& omega_D,
 }
 
 Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
-                               uint32_t max_depth, PCG32& rng, Stats& st) const {
+                               uint32_t max_depth, PCG32& rng, Stats& st, const Color& beta) const {
   if (!active_) return Color(0.f);
   const int nmax = max_len(depth, max_depth);
   if (nmax < 1) return Color(0.f);
@@ -715,13 +722,14 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     if (p_.count_limits) {
       // The second moment X^2 / q (mean over RGB) this estimate adds to its
       // sample, and what it would have been, and cost, under each limit.
-      const double m2 = mean_square(result) / std::max(q, 1e-6);
+      const Color X = beta * result;   // as it enters the sample (before the roulette's 1/q)
+      const double m2 = mean_square(X) / std::max(q, 1e-6);
       if (std::isfinite(m2)) st.chain_m2 += m2;
       Stats scratch;   // the extra rounds stay out of the pass's statistics
       scratch.cancel = st.cancel;
-      const double beta = a / (a + b);
-      tally_limits(first, &rounds, result, K, std::max(q, 1e-6), [&] {
-        return round(xD, nD, lp, n, offsets, seed_guide, tau_star, w_star, beta, rng, scratch, true);
+      const double coin = a / (a + b);
+      tally_limits(first, &rounds, X, K, std::max(q, 1e-6), [&] {
+        return round(xD, nD, lp, n, offsets, seed_guide, tau_star, w_star, coin, rng, scratch, true);
       }, st);
       tallied = true;
     }

@@ -159,8 +159,10 @@ class ChainEstimator {
                 const std::string& tau, double ab[4]) const;
 
   // Contribution at x_D (already multiplied by f_s * |cos|); `wi` toward the camera.
+  // `beta`: the path's throughput the caller multiplies the estimate by (count_limits
+  // tallies the sample's part, beta x estimate).
   Color estimate(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
-                 uint32_t max_depth, PCG32& rng, Stats& st) const;
+                 uint32_t max_depth, PCG32& rng, Stats& st, const Color& beta = Color(1.f)) const;
 
  private:
   struct LightPoint {

@@ -82,6 +82,7 @@ struct Stats {
   // b / (a P + b) moves with the estimator's P), at full weight (no rate).
   double chain_m2 = 0.0, pt_shared_m2 = 0.0;
   std::array<double, kHalvingSlots> limit_m2{}, limit_steps{}, limit_pt_m2{}, limit_pt_steps{};
+  std::array<uint64_t, kHalvingSlots> limit_censored{};  // counts whose extra rounds hit their cap
   std::array<uint64_t, 11> walk_failures{};  // by WalkFailure
   // guiding (mpg)
   uint64_t guided_trials = 0;        // trials whose seed came from the learned distribution
@@ -113,6 +114,7 @@ struct Stats {
       limit_steps[h] += o.limit_steps[h];
       limit_pt_m2[h] += o.limit_pt_m2[h];
       limit_pt_steps[h] += o.limit_pt_steps[h];
+      limit_censored[h] += o.limit_censored[h];
     }
     guided_trials += o.guided_trials;
     chain_inactive += o.chain_inactive;
@@ -154,6 +156,7 @@ struct Stats {
       m["limit_steps_" + slot] = limit_steps[h];
       m["limit_pt_m2_" + slot] = limit_pt_m2[h];
       m["limit_pt_steps_" + slot] = limit_pt_steps[h];
+      m["limit_censored_" + slot] = double(limit_censored[h]);
     }
     return m;
   }

@@ -35,10 +35,11 @@ def _split_setting(name: str, value, words: tuple[str, ...]):
     return k
 
 
-# Time of one line-search try per chain vertex (a reprojected vertex) in units of
-# one path-tracer ray: bench/step_cost.py counting every try measured 2.1-3.9 on
-# sphere, double_slabs, chain_length_4, emitter_size_003 and visibility_4.
-TRY_COST = 2.5
+# Time of one tried chain vertex (a traced seed vertex or a line-search try's
+# reprojected one) in units of one path-tracer ray: bench/step_cost.py
+# ("ratio per tried vertex") measured 3.1 (sphere), 1.9 (double_slabs), 1.7
+# (chain_length_4), 2.1 (emitter_size_003) and 2.0 (visibility_4); the median.
+TRY_COST = 2.0
 # A line-search limit is used only where it promises at least this much lower
 # variance x work than the full search (the prediction is from a few spp).
 LIMIT_MARGIN = 0.05
@@ -76,14 +77,19 @@ def choose_step_halvings(stats: dict, n: int, variance: float, work: float, m_sc
         return -1, info
     ratios, dv, dw = [], [], []
     for h in HALVING_LIMITS:
+        if stats.get(f"limit_censored_{h}", 0.0) > 0.0:
+            # some count ran into the extra rounds' cap: H finds solutions far
+            # less often than the search counted with; not a candidate
+            ratios.append(float("inf")), dv.append(float("inf")), dw.append(0.0)
+            continue
         dv.append((m_scale * delta("limit_m2", h) + w_scale * delta("limit_pt_m2", h)) / n / variance)
         dw.append(TRY_COST * (s_scale * delta("limit_steps", h) + delta("limit_pt_steps", h)) / n / work)
         r = (1.0 + dv[-1]) * (1.0 + dw[-1])
         ratios.append(float(r) if np.isfinite(r) else float("inf"))
     best = int(np.argmin(ratios))
-    info["step_halvings_ratios"] = [round(r, 4) for r in ratios]
-    # the predicted relative changes of variance and of work, per limit
-    info["step_halvings_dvariance"] = [round(float(x), 4) for x in dv]
+    info["step_halvings_ratios"] = [round(r, 4) if np.isfinite(r) else None for r in ratios]
+    # the predicted relative changes of variance and of work, per limit (None: censored)
+    info["step_halvings_dvariance"] = [round(float(x), 4) if np.isfinite(x) else None for x in dv]
     info["step_halvings_dwork"] = [round(float(x), 4) for x in dw]
     if ratios[best] < 1.0 - margin:
         info.update(step_halvings=best, step_halvings_predicted=ratios[best])
@@ -144,7 +150,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             raise RenderError(f"{nm} must be in [0.001, 1], got {v}")
     params["chain_rate"] = q_train if auto else rate
     # step_halvings: "auto" (the default) chooses the render's line-search limit
-    # from the training passes (choose_step_halvings), which run the full search
+    # from the training passes (choose_step_halvings), which start with the full search
     halvings = params.pop("step_halvings", "auto")
     auto_halvings = halvings == "auto"
     # ... re-chosen after each training iteration; with limit_in_training (the
