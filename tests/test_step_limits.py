@@ -2,8 +2,6 @@
 (WalkResult::limited_tries, ChainEstimator::tally_limits) and mpg's choice
 among them (mpg.guiding.choose_step_halvings; design-notes "Step control")."""
 
-import sys
-
 import numpy as np
 import pytest
 
@@ -11,10 +9,8 @@ import mpg
 from mpg import _core
 from mpg.errors import RenderError
 from mpg.guiding import choose_step_halvings
-
-sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
-from test_chains import mirror_scene  # noqa: E402
-from test_manifold import MIRROR, core  # noqa: E402
+from test_chains import mirror_scene
+from test_manifold import MIRROR, core
 
 FULL = 11   # the slot of the walk as configured (kFullSearch)
 

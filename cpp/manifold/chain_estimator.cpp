@@ -413,7 +413,7 @@ int ChainEstimator::mis_rounds(const DVec3& xD, const DVec3& nD, const LightPoin
 }
 
 void ChainEstimator::tally_limits(const TrialTally& first, const std::vector<Round>* rounds, const Color& X,
-                                  int K, double q, const std::function<Round()>& more, Stats& st,
+                                  int K, double q, const std::function<Round(Stats&)>& more, Stats& st,
                                   bool pt) const {
   // Under limit H (slot h) the walks are the full search's until H stops one
   // (WalkResult::limited_tries): the first trial finds the same solution iff
@@ -448,7 +448,11 @@ void ChainEstimator::tally_limits(const TrialTally& first, const std::vector<Rou
   // leaves it out (a limit under which P_H ~ 0 would otherwise run up to
   // max_trials walks per estimate in training).
   const int cap = std::min(p_.max_trials, 16 * K + 64);
-  while (open > 0 && index < cap && !st.cancelled()) take(more(), ++index);
+  if (open > 0 && index < cap) {
+    Stats scratch;
+    scratch.cancel = st.cancel;
+    while (open > 0 && index < cap && !st.cancelled()) take(more(scratch), ++index);
+  }
   for (int h = 0; h < kHalvingSlots; ++h) {
     if (KH[size_t(h)] == -1) {
       KH[size_t(h)] = index;
@@ -539,9 +543,7 @@ float ChainEstimator::pt_weight(const SurfaceInteraction& sep, const BSDFContext
     // (b / (a P_H + b)): its value unit x w, counted as the estimates' are.
     const Color Y = unit * w;
     if (const double m2 = mean_square(Y); std::isfinite(m2)) st.pt_shared_m2 += m2;
-    Stats scratch;   // the extra rounds stay out of the pass's statistics
-    scratch.cancel = st.cancel;
-    tally_limits(TrialTally{}, &rounds, Y, K, 1.0, [&] {
+    tally_limits(TrialTally{}, &rounds, Y, K, 1.0, [&](Stats& scratch) {
       return round(c.xD, c.nD, lp, n, offsets, seed_guide, tau, w_star, beta, rng, scratch, true);
     }, st, true);
   }
@@ -725,10 +727,8 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
       const Color X = beta * result;   // as it enters the sample (before the roulette's 1/q)
       const double m2 = mean_square(X) / std::max(q, 1e-6);
       if (std::isfinite(m2)) st.chain_m2 += m2;
-      Stats scratch;   // the extra rounds stay out of the pass's statistics
-      scratch.cancel = st.cancel;
       const double coin = a / (a + b);
-      tally_limits(first, &rounds, X, K, std::max(q, 1e-6), [&] {
+      tally_limits(first, &rounds, X, K, std::max(q, 1e-6), [&](Stats& scratch) {
         return round(xD, nD, lp, n, offsets, seed_guide, tau_star, w_star, coin, rng, scratch, true);
       }, st);
       tallied = true;

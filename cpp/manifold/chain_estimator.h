@@ -220,10 +220,10 @@ class ChainEstimator {
   // count_limits: the estimate (value X, K rounds, its first trial and rounds)
   // as it would have been under each line-search limit (Stats::limit_m2,
   // limit_steps; pt: the path tracer's share of a shared path, limit_pt_*),
-  // running further rounds, outside the stats, where a limit's count would go
-  // on past K.
+  // running further rounds (`more`, given scratch stats: they stay out of the
+  // pass's) where a limit's count would go on past K.
   void tally_limits(const TrialTally& first, const std::vector<Round>* rounds, const Color& X, int K,
-                    double q, const std::function<Round()>& more, Stats& st, bool pt = false) const;
+                    double q, const std::function<Round(Stats&)>& more, Stats& st, bool pt = false) const;
 
   const Scene& scene_;
   ChainParams p_;

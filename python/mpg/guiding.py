@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, STEP_COST, CostAccumulator, learn_delta_split,
-                             learn_pixel_split, learn_rates)
+from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, STEP_COST, CostAccumulator, _sample_variance,
+                             learn_delta_split, learn_pixel_split, learn_rates)
 from mpg.errors import RenderError
 
 
@@ -201,7 +201,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         handoff_note = "off: the scene has a point or spot chain light"
     else:
         handoff_note = "on" if handoff else "off"
-    tsum = tsum2 = None   # the training samples' sums and stats, for the line-search limit
+    # the training samples' sums (without learned rates: with them, the rates'
+    # accumulator has them) and stats, for the line-search limit
+    tsum = tsum2 = None
     tstats: dict[str, float] = {}
     tstats_n = 0
     halvings_history: list[int] = []
@@ -228,9 +230,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         if tsum is None or n_all < 2:
             return None
         # one rate q in training and render: the training samples' own variance and work
-        mean = np.nan_to_num(tsum) / n_all
-        variance = float(np.sum(np.maximum(np.nan_to_num(tsum2) / n_all - mean * mean, 0.0).mean(axis=2))
-                         * n_all / (n_all - 1))
+        variance = float(np.sum(_sample_variance(tsum, tsum2, n_all)))
         work = (counts.get("rays", 0.0) + STEP_COST * counts.get("walk_steps", 0.0)) / n
         return choose_step_halvings(counts, n, variance, work, 1.0 / float(params["chain_rate"]), 1.0, 1.0)
 
@@ -285,8 +285,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             if costs is not None:
                 costs.add(r, k, params["chain_rate"])
             if auto_halvings:
-                tsum = r["sum"] if tsum is None else tsum + r["sum"]
-                tsum2 = r["sum_sq"] if tsum2 is None else tsum2 + r["sum_sq"]
+                if costs is None:
+                    tsum = r["sum"] if tsum is None else tsum + r["sum"]
+                    tsum2 = r["sum_sq"] if tsum2 is None else tsum2 + r["sum_sq"]
                 for key, v in r["stats"].items():
                     if key.startswith("limit_") or key in ("rays", "walk_steps"):
                         tstats[key] = tstats.get(key, 0.0) + v
