@@ -552,8 +552,8 @@ def test_camera_film_sampler(tmp_path):
     assert (c.fov, c.fov_axis, c.near_clip, c.far_clip) == (35, "smaller", 0.1, 1e4)
     assert (c.width, c.height, c.crop) == (64, 32, (8, 0, 16, 32))
     assert c.rfilter.type == "gaussian" and c.rfilter.stddev == 0.5
-    assert c.spp == 9
-    assert any("stratified" in w for w in s.warnings)
+    assert c.spp == 9 and c.sampler == "stratified"
+    assert not any("stratified" in w for w in s.warnings)
     assert s.integrator.type == "path"
     assert s.integrator.params == {"max_depth": 7, "rr_depth": 5, "hide_emitters": False}
 

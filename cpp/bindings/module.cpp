@@ -8,6 +8,7 @@
 #include <memory>
 #include <stdexcept>
 
+#include "core/rng.h"
 #include "core/warp.h"
 #include "integrators/path.h"
 #include "manifold/chain_estimator.h"
@@ -639,11 +640,14 @@ PYBIND11_MODULE(_core, m) {
   py::class_<RenderJob, std::shared_ptr<RenderJob>>(m, "RenderJob")
       .def(py::init([](std::shared_ptr<Scene> scene, std::shared_ptr<Integrator> integ, int spp, uint64_t seed,
                        uint64_t pass, int threads, py::object chain_rate_map, bool record_costs,
-                       py::object delta_split_map, py::object pixel_split_map) {
+                       py::object delta_split_map, py::object pixel_split_map, bool stratify,
+                       uint64_t sample_offset) {
         if (!scene->committed()) throw std::runtime_error("scene not committed");
         if (spp < 1) throw std::invalid_argument("spp must be >= 1");
         PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
         cfg.record_costs = record_costs;
+        cfg.stratify = stratify;
+        cfg.sample_offset = sample_offset;
         if (!chain_rate_map.is_none()) {
           auto m = pixel_map(chain_rate_map, scene->camera, "chain_rate_map");
           bool zero = false;
@@ -677,7 +681,8 @@ PYBIND11_MODULE(_core, m) {
         return job;
       }), py::arg("scene"), py::arg("integrator"), py::arg("spp"), py::arg("seed") = 0, py::arg("pass_index") = 0,
          py::arg("threads") = 0, py::arg("chain_rate_map") = py::none(), py::arg("record_costs") = false,
-         py::arg("delta_split_map") = py::none(), py::arg("pixel_split_map") = py::none())
+         py::arg("delta_split_map") = py::none(), py::arg("pixel_split_map") = py::none(),
+         py::arg("stratify") = false, py::arg("sample_offset") = 0)
       .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
       .def("cancel", &RenderJob::cancel)
       .def_property_readonly("progress", &RenderJob::progress)
@@ -864,6 +869,20 @@ PYBIND11_MODULE(_core, m) {
     return py::make_tuple(idx, out);
   }, py::arg("weights"), py::arg("u"));
   m.def("warp_pdf", &warp_pdf, py::arg("name"), py::arg("v"), py::arg("param") = 0.f);
+  // Points start .. start + n - 1 of the shifted Sobol (0,2)-sequence the
+  // stratified sampler gives a pixel's positions (tests): an (n, 2) array.
+  m.def("sobol_2d", [](int64_t n, uint64_t start, uint32_t shift0, uint32_t shift1) {
+    if (n < 0 || n > (int64_t(1) << 26)) throw std::invalid_argument("n must be in [0, 2^26]");
+    if (start + uint64_t(n) > (uint64_t(1) << 32)) throw std::invalid_argument("indices must stay below 2^32");
+    FArray out(std::vector<ssize_t>{ssize_t(n), 2});
+    for (int64_t i = 0; i < n; ++i) {
+      float u0, u1;
+      shifted_sobol_2d(uint32_t(start + uint64_t(i)), shift0, shift1, u0, u1);
+      out.mutable_at(i, 0) = u0;
+      out.mutable_at(i, 1) = u1;
+    }
+    return out;
+  }, py::arg("n"), py::arg("start") = 0, py::arg("shift0") = 0, py::arg("shift1") = 0);
   m.def("bsdf_sample", [](const Scene& s, int id, py::object wi_o, const FArray& u) {
     const Vec3 wi = glm::normalize(vec3(wi_o));
     if (u.ndim() != 2 || u.shape(1) != 3) throw std::invalid_argument("u must have shape (N, 3)");

@@ -51,6 +51,39 @@ inline uint64_t mix64(uint64_t z) {
   return z ^ (z >> 31);
 }
 
+// The first two dimensions of Sobol's sequence, a (0,2)-sequence in base 2
+// (Sobol 1967; dimension 0 is van der Corput's radical inverse, dimension 1's
+// generator matrix is Pascal's triangle mod 2). Every block of 2^m points
+// starting at a multiple of 2^m puts one point in each elementary interval
+// [a 2^-j, (a+1) 2^-j) x [b 2^-(m-j), (b+1) 2^-(m-j)), for every j = 0..m.
+inline uint32_t sobol_dim0(uint32_t i) {
+  i = (i << 16) | (i >> 16);
+  i = ((i & 0x00ff00ffu) << 8) | ((i & 0xff00ff00u) >> 8);
+  i = ((i & 0x0f0f0f0fu) << 4) | ((i & 0xf0f0f0f0u) >> 4);
+  i = ((i & 0x33333333u) << 2) | ((i & 0xccccccccu) >> 2);
+  i = ((i & 0x55555555u) << 1) | ((i & 0xaaaaaaaau) >> 1);
+  return i;
+}
+
+inline uint32_t sobol_dim1(uint32_t i) {
+  uint32_t x = 0, v = 0x80000000u;
+  for (; i; i >>= 1, v ^= v >> 1)
+    if (i & 1u) x ^= v;
+  return x;
+}
+
+// Point i of the pixel's 2D sequence, randomly digitally shifted: XORed with
+// the pixel's own uniform random 32-bit words (shift0, shift1). XOR with fixed
+// bits maps the dyadic intervals of each shape one to one onto themselves, so
+// the net property above is kept; XOR with uniform random bits makes each
+// point, on its own, exactly uniform on the 2^-32 grid, so every sample stays
+// an unbiased estimate and only the samples of one pixel are correlated (the
+// stratification). Returned as floats on the 2^-24 grid.
+inline void shifted_sobol_2d(uint32_t i, uint32_t shift0, uint32_t shift1, float& u0, float& u1) {
+  u0 = float((sobol_dim0(i) ^ shift0) >> 8) * 0x1.0p-24f;
+  u1 = float((sobol_dim1(i) ^ shift1) >> 8) * 0x1.0p-24f;
+}
+
 // The random stream of one sample depends on (seed, pass, pixel, sample index) only.
 inline PCG32 make_stream(uint64_t seed, uint64_t pass, uint64_t pixel, uint64_t sample) {
   const uint64_t a = mix64(seed ^ mix64(pass + 0x632be59bd9b4e019ULL));

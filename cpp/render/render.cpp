@@ -78,9 +78,21 @@ void RenderJob::run() {
     Stats& st = stats[size_t(tid)];
     st.cancel = &cancel_;
     // A camera ray through film pixel (fx, fy), its position drawn from the pixel filter.
-    auto camera_ray = [&](PCG32& rng, int fx, int fy, Vec3& o, Vec3& d, float& tmin, float& tmax) {
-      const float ox = cam.filter.sample(rng.next_float());
-      const float oy = cam.filter.sample(rng.next_float());
+    // With cfg_.stratify and an index >= 0 the position is point `index` of the
+    // pixel's shifted Sobol sequence (shift words from the seed and pixel only).
+    auto camera_ray = [&](PCG32& rng, int fx, int fy, Vec3& o, Vec3& d, float& tmin, float& tmax,
+                          int64_t index = -1) {
+      float u0, u1;
+      if (cfg_.stratify && index >= 0) {
+        const uint64_t pixel = uint64_t(fy) * uint64_t(cam.width) + uint64_t(fx);
+        const uint64_t h = mix64(mix64(cfg_.seed ^ 0x5851f42d4c957f2dULL) ^ pixel);
+        shifted_sobol_2d(uint32_t(uint64_t(index)), uint32_t(h), uint32_t(h >> 32), u0, u1);
+      } else {
+        u0 = rng.next_float();
+        u1 = rng.next_float();
+      }
+      const float ox = cam.filter.sample(u0);
+      const float oy = cam.filter.sample(u1);
       cam.generate_ray(Vec2(float(fx) + 0.5f + ox, float(fy) + 0.5f + oy), o, d, tmin, tmax);
       st.camera_rays++;
     };
@@ -117,7 +129,8 @@ void RenderJob::run() {
             for (int sub = 0; sub < kpix; ++sub) {
               Vec3 o, d;
               float tmin, tmax;
-              camera_ray(rng, fx, fy, o, d, tmin, tmax);
+              camera_ray(rng, fx, fy, o, d, tmin, tmax,
+                         int64_t((cfg_.sample_offset + uint64_t(k)) * uint64_t(kpix) + uint64_t(sub)));
               st.sample_alt_delta = Color(0.f);
               st.sample_owned_hit = false;
               st.sample_delta_L = Color(0.f);

@@ -57,6 +57,14 @@ struct PassConfig {
   // samples (camera ray, Li, delta split), so its variance is 1/k of one.
   std::shared_ptr<const std::vector<float>> pixel_split_map;
   bool record_costs = false;
+  // Pixel positions from a per-pixel randomly shifted Sobol (0,2)-sequence
+  // (core/rng.h shifted_sobol_2d) instead of independent random numbers; the
+  // scene's sampler stratified/multijitter/ldsampler/... asks for it. Point
+  // (sample_offset + k) x pixel_split + sub of the pixel's sequence is the
+  // position of sample k's sub-sample sub, so consecutive passes continue one
+  // sequence when sample_offset counts the samples of the passes before.
+  bool stratify = false;
+  uint64_t sample_offset = 0;
 };
 
 class RenderJob {

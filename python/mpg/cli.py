@@ -39,6 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--spp", type=int, help="samples per pixel (default: the scene's sampler)")
     g.add_argument("--time", type=float, help="time budget in seconds")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--sampler", choices=("independent", "stratified"),
+                   help="pixel positions: independent, or stratified (a shifted Sobol sequence "
+                        "per pixel); default: the scene's <sampler>")
     p.add_argument("--threads", type=int, help="render threads (default: all cores)")
     p.add_argument("--preview", help="also write a tone-mapped PNG (default: beside the EXR)")
     p.add_argument("--no-preview", action="store_true", help="do not write a PNG")
@@ -107,7 +110,7 @@ def _run(args) -> int:
                 integrator.update(scene.desc.integrator.params)
             integrator.update(dict(args.iparams))
         img = mpg.render(scene, integrator=integrator, spp=args.spp, time=args.time,
-                         seed=args.seed, threads=args.threads,
+                         seed=args.seed, threads=args.threads, sampler=args.sampler,
                          progress=False if args.quiet else None)
     finally:
         signal.signal(signal.SIGTERM, old)

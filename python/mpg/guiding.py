@@ -98,7 +98,7 @@ def choose_step_halvings(stats: dict, n: int, variance: float, work: float, m_sc
 
 
 def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
-               seed: int, threads: int | None, progress: bool | None):
+               seed: int, threads: int | None, progress: bool | None, sampler: str = "independent"):
     from mpg import _core
     from mpg.render import _as_bool, render
 
@@ -365,7 +365,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     rest_t = None if time is None else max(0.05, time - seconds_training)
     img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
-                 chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap)
+                 chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap, sampler=sampler)
     st: dict[str, Any] = img.stats
     st["warnings"] = list(dict.fromkeys(st.get("warnings", []) + warnings))
     st["integrator"] = "mpg"

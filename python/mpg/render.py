@@ -228,6 +228,7 @@ def render(
     chain_rate_map: np.ndarray | None = None,
     delta_split_map: np.ndarray | None = None,
     pixel_split_map: np.ndarray | None = None,
+    sampler: str | None = None,
 ) -> Image:
     """Render `scene` and return an Image.
 
@@ -244,6 +245,14 @@ def render(
     pixel_split_map: per-pixel sample splits (crop height x width, integers
       1..64), mpg's learned ones: each sample of a pixel is the mean of k
       camera samples.
+    sampler: 'independent' or 'stratified' pixel positions; None: the scene's
+      <sampler> (independent, or stratified for stratified/multijitter/
+      ldsampler/orthogonal/low_discrepancy). Stratified positions are points of
+      a per-pixel randomly shifted Sobol (0,2)-sequence continued across the
+      passes: each sample is still unbiased, only a pixel's samples are
+      correlated, so the image's `variance` channel (from the samples' spread)
+      then over-estimates the variance of the pixel means where the positions
+      matter (a conservative error bar).
     """
     from mpg import _core
 
@@ -255,11 +264,16 @@ def render(
         raise RenderError(f"time must be positive, got {time}")
     if threads is not None and threads < 1:
         raise RenderError(f"threads must be at least 1, got {threads}")
+    if sampler is None:
+        sampler = getattr(scene.desc.camera, "sampler", "independent")
+    if sampler not in ("independent", "stratified"):
+        raise RenderError(f"sampler must be 'independent' or 'stratified', got {sampler!r}")
     name, params, warnings = _resolve_integrator(scene, integrator)
     if name == "mpg" and "guide" not in params:
         from mpg.guiding import render_mpg
 
         return render_mpg(scene, params, warnings, spp=spp, time=time, seed=seed, threads=threads,
+                          sampler=sampler,
                           progress=progress)
     try:
         integ = _core.make_integrator(scene.core, name, params)
@@ -322,7 +336,8 @@ def render(
                 job = _core.RenderJob(core_scene, integ, k, seed, passes, threads or 0,
                                       chain_rate_map=chain_rate_map,
                                       delta_split_map=delta_split_map,
-                                      pixel_split_map=pixel_split_map)
+                                      pixel_split_map=pixel_split_map,
+                                      stratify=sampler == "stratified", sample_offset=done)
             except ValueError as e:   # a bad chain_rate_map (shape, values)
                 raise RenderError(str(e)) from None
             cancelled_by_time = False
@@ -391,6 +406,7 @@ def render(
         "passes": passes,
         "seconds": elapsed,
         "seed": seed,
+        "sampler": sampler,
         "threads": threads or 0,
         "interrupted": interrupted,
         "time_limited": time_limited,

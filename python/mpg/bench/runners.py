@@ -107,10 +107,14 @@ def run_mpg(spec: IntegratorSpec, scene: BenchScene, *, time: float | None = Non
     s = _mpg_scene(scene)
     _ = s.core                          # build the BVH before the clock (as mpg.render does)
     integ: Any = spec.name
-    if spec.params:
-        integ = dict(spec.params, type=spec.name)
+    # `sampler` in an entry (path/sampler=stratified) is the render's, not the
+    # integrator's.
+    params = dict(spec.params)
+    sampler = params.pop("sampler", None)
+    if params:
+        integ = dict(params, type=spec.name)
     img = mpg.render(s, integrator=integ, spp=spp, time=time, seed=seed, threads=threads,
-                     progress=False)
+                     progress=False, sampler=sampler)
     if img.spp == 0:
         raise BenchError(f"{spec.text} on {scene.label}: no pass finished within {time} s")
     st = dict(img.stats)

@@ -153,6 +153,7 @@ class CameraDesc:
     crop: tuple[int, int, int, int] = (0, 0, 768, 576)   # offset_x, offset_y, width, height
     rfilter: FilterDesc = field(default_factory=FilterDesc)
     spp: int = 4                      # the sampler's sample_count
+    sampler: str = "independent"      # 'independent' | 'stratified' (pixel positions, render.py)
     source: SourcePos | None = None
 
 

@@ -1156,11 +1156,11 @@ class _Loader:
         t = node.get("type")
         _check_attrs(node, {"type", "id", "name"})
         if t != "independent":
-            if t in SAMPLER_ALIASES:
-                self.warn(node, f"sampler '{t}' is replaced by 'independent'")
-            else:
+            if t not in SAMPLER_ALIASES:
                 raise node.error(f"unsupported sampler '{t}' (supported: independent; "
-                                 f"{', '.join(SAMPLER_ALIASES)} are treated as independent)")
+                                 f"{', '.join(SAMPLER_ALIASES)}, which stratify the pixel "
+                                 "positions)")
+            cam.sampler = "stratified"
         p = Props(self, node)
         n = p.int("sample_count", 4)
         if not 0 < n < 1 << 40:
