@@ -370,6 +370,31 @@ def test_glossy_chains_agree_with_path_tracing(kind, integ, spp):
     _assert_floor_agreement(sc, img, ref)
 
 
+@pytest.mark.parametrize("integ", [{"type": "sms_star", "max_chain": 3}, {"type": "mpg"}])
+def test_a_glossy_caustic_receiver_is_a_separator(integ):
+    """A glossy floor (alpha 0.05, below glossy_threshold) is a chain vertex
+    unless the scene marks it caustic_receiver: then it is a separator, the
+    chains run from it and its image agrees with the path tracer (|z| < 5 on
+    the floor, whole and per quadrant); without the mark no chain starts there
+    (the camera sees the floor directly, so there is no separator at all)."""
+    cam = CAM.format(fov=40, o="0, 4, 2.5", t="0, 0.3, 0", res=24).replace('up="0, 0, -1"', 'up="0, 1, 0"')
+    caster = ('<shape type="sphere"><point name="center" x="0" y="1" z="0"/><float name="radius" value="0.8"/>'
+              '<bsdf type="dielectric"><float name="int_ior" value="1.5"/></bsdf></shape>')
+    glossy = ('<bsdf type="roughconductor"><string name="material" value="Al"/>'
+              '<string name="distribution" value="ggx"/><float name="alpha" value="0.05"/></bsdf>')
+    xml = GLOSSY.format(cam=cam, caster=caster).replace(
+        '<bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>', glossy + '</shape>', 1)
+    assert glossy in xml
+    plain = mpg.load_string(xml)
+    img = mpg.render(plain, integrator=dict(integ), spp=8, seed=3, progress=False)
+    assert img.stats["chain_contributions"] == 0
+    marked = mpg.load_string(xml.replace(glossy, '<boolean name="caustic_receiver" value="true"/>' + glossy, 1))
+    ref = mpg.render(marked, integrator="path", spp=8192, seed=1, progress=False)
+    img = mpg.render(marked, integrator=dict(integ), spp=256, seed=2, progress=False)
+    assert img.stats["chain_contributions"] > 100
+    _assert_floor_agreement(marked, img, ref)
+
+
 SLAB_POINT = """<scene version="3.0.0"><integrator type="path"><integer name="max_depth" value="6"/></integrator>
   <sensor type="perspective"><float name="fov" value="6"/>
     <transform name="to_world"><lookat origin="0.6, 5, 0.2" target="0.6, 0, 0.2" up="0, 0, -1"/></transform>

@@ -481,6 +481,11 @@ PYBIND11_MODULE(_core, m) {
         Shape sh; sh.kind = Shape::Kind::Sphere; sh.center = vec3(center); sh.radius = radius; sh.bsdf = bsdf; sh.flip_normals = flip;
         return s.add_shape(std::move(sh));
       }, py::arg("center"), py::arg("radius"), py::arg("bsdf"), py::arg("flip_normals") = false)
+      .def("set_caustic_receiver", [](Scene& s, int shape, bool on) {
+        check_not_committed(s);
+        if (shape < 0 || shape >= int(s.shapes.size())) throw std::invalid_argument("shape id out of range");
+        s.shapes[size_t(shape)].caustic_receiver = on;
+      }, py::arg("shape"), py::arg("on") = true)
       .def("add_area_emitter", [](Scene& s, int shape, py::object radiance) {
         check_not_committed(s);
         if (shape < 0 || shape >= int(s.shapes.size())) throw std::invalid_argument("shape id out of range");

@@ -40,7 +40,11 @@ ChainEstimator::ChainEstimator(const Scene& scene, ChainParams p)
   specular_shape_.assign(scene.shapes.size(), 0);
   std::vector<float> areas;
   for (size_t i = 0; i < scene.shapes.size(); ++i) {
-    if (specular_node(scene.bsdfs, scene.shapes[i].bsdf, p.walk.glossy_threshold) && scene.shapes[i].emitter < 0) {
+    // A shape the scene marks caustic_receiver is a separator even when glossy
+    // below the threshold (a glossy floor receives the caustic; SMS and MPG
+    // run their estimators on receivers).
+    if (specular_node(scene.bsdfs, scene.shapes[i].bsdf, p.walk.glossy_threshold) && scene.shapes[i].emitter < 0 &&
+        !scene.shapes[i].caustic_receiver) {
       specular_shape_[i] = 1;
       seed_shapes_.push_back(int(i));
       areas.push_back(scene.shapes[i].area);

@@ -96,6 +96,8 @@ def build_scene(desc: SceneDesc):
                     bid,
                     bool(s.flip_normals),
                 )
+            if "caustic_receiver" in s.hints:
+                core.set_caustic_receiver(sid)
             if s.emitter is not None:
                 rad = np.asarray(s.emitter.params["radiance"], dtype=np.float64)
                 core.add_area_emitter(sid, rad.tolist())
