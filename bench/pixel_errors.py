@@ -23,11 +23,23 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
+def cached_reference(scene: str, tool: str):
+    """(bench scene, reference RGB) of `scene`'s cached reference, or None
+    after saying how to make it."""
+    from mpg.bench import reference as refmod
+    from mpg.bench.scenes import resolve_scene
+
+    sc = resolve_scene(scene)
+    info = refmod.find_reference(sc)
+    if info is None:
+        print(f"{tool}: no cached reference of {scene}; make it with mpg-bench reference", file=sys.stderr)
+        return None
+    return sc, refmod.load_reference(info)[0]
+
+
 def main() -> int:
     import mpg
     import mpg.guiding as guiding
-    from mpg.bench import reference as refmod
-    from mpg.bench.scenes import resolve_scene
     from mpg.chain_rates import _costs, _finite, _sample_variance
 
     ap = argparse.ArgumentParser()
@@ -39,13 +51,10 @@ def main() -> int:
     ap.add_argument("--moments", type=int, nargs=2, metavar=("X", "Y"))
     args = ap.parse_args()
 
-    sc = resolve_scene(args.scene)
-    info = refmod.find_reference(sc)
-    if info is None:
-        print(f"pixel_errors: no cached reference of {args.scene}; make it with mpg-bench reference",
-              file=sys.stderr)
+    found = cached_reference(args.scene, "pixel_errors")
+    if found is None:
         return 2
-    ref, _ = refmod.load_reference(info)
+    sc, ref = found
     name, *kv = args.integrator.split("/")
     integ = dict(type=name, **dict(p.split("=", 1) for p in kv))
     seen: dict = {}
