@@ -116,3 +116,13 @@ def test_mpg_summary_and_chain_rate_map(tmp_path, scenes_dir):
     r = run([scene, "-D", "res=16", "--integrator", "path", "--spp", "2", "-o", str(tmp_path / "p.exr"),
              "--chain-rate-map", str(png2)])
     assert r.returncode == 0 and "no learned chain rates" in r.stderr and not png2.exists()
+
+
+def test_sampler_on_the_command_line(tmp_path):
+    st = tmp_path / "s.json"
+    r = run(["--sampler", "stratified", "--spp", "2", "-o", str(tmp_path / "s.exr"), "--stats", str(st),
+             *SMALL])
+    assert r.returncode == 0, r.stderr
+    assert json.loads(st.read_text())["sampler"] == "stratified"
+    r = run(["--sampler", "sobol", "--spp", "1", "-o", str(tmp_path / "t.exr"), *SMALL])
+    assert r.returncode == 2 and "--sampler" in r.stderr
