@@ -106,11 +106,28 @@ def test_stratified_is_unbiased_and_lowers_an_edge_pixels_variance():
 
 
 def test_stratified_image_does_not_depend_on_threads_and_continues_across_passes():
-    sc = mpg.load_string(EDGE.format(sampler="independent"))
+    # 48 x 48 pixels: 9 tiles, so two threads really share the image.
+    xml = EDGE.format(sampler="independent").replace('value="8"/>', 'value="48"/>')
+    sc = mpg.load_string(xml)
     a = mpg.render(sc, spp=9, seed=3, threads=1, progress=False, sampler="stratified")
     b = mpg.render(sc, spp=9, seed=3, threads=2, progress=False, sampler="stratified")
     assert np.array_equal(a.rgb, b.rgb)
-    assert a.stats["sampler"] == "stratified" and a.stats["passes"] > 1
+    assert a.stats["sampler"] == "stratified" and a.stats["passes"] == 5   # 1, 1, 2, 4, 1 spp
+    # The passes continue one sequence per pixel: the same 9 points as one
+    # pass of 9 samples (a pixel's value here is decided by its positions
+    # alone -- the light or nothing -- so the images are equal).
+    integ = _core.make_integrator(sc.core, "path", dict(sc.desc.integrator.params))
+    job = _core.RenderJob(sc.core, integ, 9, 3, 0, 1, stratify=True, sample_offset=0)
+    while not job.wait(1.0):
+        pass
+    one = np.asarray(job.result()["sum"]).reshape(a.rgb.shape) / 9.0
+    assert np.allclose(one, a.rgb, rtol=0, atol=1e-6)
+    # Restarting the sequence in each pass would repeat points 0..: not these.
+    job = _core.RenderJob(sc.core, integ, 9, 3, 0, 1, stratify=True, sample_offset=1)
+    while not job.wait(1.0):
+        pass
+    shifted = np.asarray(job.result()["sum"]).reshape(a.rgb.shape) / 9.0
+    assert not np.allclose(shifted, a.rgb, rtol=0, atol=1e-6)
     # Another seed shifts the sequences: a different image.
     c = mpg.render(sc, spp=9, seed=4, threads=1, progress=False, sampler="stratified")
     assert not np.array_equal(a.rgb, c.rgb)

@@ -43,8 +43,11 @@ ChainEstimator::ChainEstimator(const Scene& scene, ChainParams p)
     // A shape the scene marks caustic_receiver is a separator even when glossy
     // below the threshold (a glossy floor receives the caustic; SMS and MPG
     // run their estimators on receivers).
+    // A smooth (delta) one stays a chain shape: as a separator it would get
+    // neither NEE nor chain estimates, and a point light's caustic through it
+    // would be lost.
     if (specular_node(scene.bsdfs, scene.shapes[i].bsdf, p.walk.glossy_threshold) && scene.shapes[i].emitter < 0 &&
-        !scene.shapes[i].caustic_receiver) {
+        !(scene.shapes[i].caustic_receiver && !specular_node(scene.bsdfs, scene.shapes[i].bsdf, 0.f))) {
       specular_shape_[i] = 1;
       seed_shapes_.push_back(int(i));
       areas.push_back(scene.shapes[i].area);
@@ -194,6 +197,10 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
       st.walk_failures[size_t(why)]++;
       return false;
     }
+    if (!on_chain_shapes(chain)) {
+      st.walk_failures[size_t(WalkFailure::LeftSurface)]++;
+      return false;
+    }
     const WalkResult r = walk_.solve(chain);
     count_walk(r, n, st, tally);
     if (!r.converged) {
@@ -218,6 +225,10 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     count_seed(n, tally);
     if (!walk_.trace_seed(xD, nD, dir, tau, chain, why, &offsets)) {
       st.walk_failures[size_t(why)]++;
+      return false;
+    }
+    if (!on_chain_shapes(chain)) {
+      st.walk_failures[size_t(WalkFailure::LeftSurface)]++;
       return false;
     }
   } else {
@@ -566,7 +577,7 @@ bool ChainEstimator::mis_pair(const Vec3& o, const Vec3& d, const Vec3& omega_D,
   for (char letter : tau) {
     const SurfaceInteraction si = scene_.intersect(offset_ray_origin(org, ng, dir), dir, 0.f, kInf);
     ManifoldVertex v;
-    if (!si.valid || !walk_.make_vertex(si, letter == 'R', v, nullptr)) return false;
+    if (!si.valid || !is_chain_shape(si.shape) || !walk_.make_vertex(si, letter == 'R', v, nullptr)) return false;
     DVec3 wo;
     if (!ManifoldWalk::scatter(-to_d(dir), v.n, v.eta, letter == 'R', wo)) return false;
     verts.push_back(si);

@@ -120,6 +120,14 @@ class ChainEstimator {
   }
   // Is shape `s` a surface the walk accepts as a specular vertex?
   bool is_chain_shape(int s) const { return specular_shape_[size_t(s)] != 0; }
+  // Are all of a traced seed's vertices on chain shapes? (trace_seed checks the
+  // BSDFs only; a glossy receiver or a specular emitter shape is the path
+  // tracer's separator or end, never a chain vertex.)
+  bool on_chain_shapes(const ManifoldChain& c) const {
+    for (const ManifoldVertex& v : c.v)
+      if (!is_chain_shape(v.shape)) return false;
+    return true;
+  }
   // Is this resolved BSDF a chain vertex (smooth, or glossy below the
   // threshold)? Such vertices are not separators for the path tracer.
   bool is_chain_bsdf(const BSDF& b) const {

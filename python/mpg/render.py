@@ -251,8 +251,8 @@ def render(
       a per-pixel randomly shifted Sobol (0,2)-sequence continued across the
       passes: each sample is still unbiased, only a pixel's samples are
       correlated, so the image's `variance` channel (from the samples' spread)
-      then over-estimates the variance of the pixel means where the positions
-      matter (a conservative error bar).
+      then usually over-estimates the variance of the pixel means where the
+      positions matter (not guaranteed: design-notes).
     """
     from mpg import _core
 
