@@ -40,12 +40,11 @@ ChainEstimator::ChainEstimator(const Scene& scene, ChainParams p)
   specular_shape_.assign(scene.shapes.size(), 0);
   std::vector<float> areas;
   for (size_t i = 0; i < scene.shapes.size(); ++i) {
-    // A shape the scene marks caustic_receiver is a separator even when glossy
-    // below the threshold (a glossy floor receives the caustic; SMS and MPG
-    // run their estimators on receivers).
-    // A smooth (delta) one stays a chain shape: as a separator it would get
-    // neither NEE nor chain estimates, and a point light's caustic through it
-    // would be lost.
+    // A glossy shape the scene marks caustic_receiver is a separator even below
+    // the threshold (a glossy floor receives the caustic; SMS and MPG run their
+    // estimators on receivers). A smooth one -- a chain node at threshold 0 --
+    // stays a chain shape: as a delta surface it would be no separator either,
+    // and a point light's caustic through it would be lost.
     if (specular_node(scene.bsdfs, scene.shapes[i].bsdf, p.walk.glossy_threshold) && scene.shapes[i].emitter < 0 &&
         !(scene.shapes[i].caustic_receiver && !specular_node(scene.bsdfs, scene.shapes[i].bsdf, 0.f))) {
       specular_shape_[i] = 1;

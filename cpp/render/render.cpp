@@ -79,14 +79,13 @@ void RenderJob::run() {
     st.cancel = &cancel_;
     // A camera ray through film pixel (fx, fy), its position drawn from the pixel filter.
     // With cfg_.stratify and an index >= 0 the position is point `index` of the
-    // pixel's shifted Sobol sequence (shift words from the seed and pixel only).
+    // pixel's Sobol sequence shifted by `shift` (the pixel's two 32-bit words).
+    const uint64_t shift_key = mix64(cfg_.seed ^ 0x5851f42d4c957f2dULL);
     auto camera_ray = [&](PCG32& rng, int fx, int fy, Vec3& o, Vec3& d, float& tmin, float& tmax,
-                          int64_t index = -1) {
+                          int64_t index = -1, uint64_t shift = 0) {
       float u0, u1;
       if (cfg_.stratify && index >= 0) {
-        const uint64_t pixel = uint64_t(fy) * uint64_t(cam.width) + uint64_t(fx);
-        const uint64_t h = mix64(mix64(cfg_.seed ^ 0x5851f42d4c957f2dULL) ^ pixel);
-        shifted_sobol_2d(uint32_t(uint64_t(index)), uint32_t(h), uint32_t(h >> 32), u0, u1);
+        shifted_sobol_2d(uint32_t(uint64_t(index)), uint32_t(shift), uint32_t(shift >> 32), u0, u1);
       } else {
         u0 = rng.next_float();
         u1 = rng.next_float();
@@ -106,6 +105,7 @@ void RenderJob::run() {
         for (int x = x0; x < x1; ++x) {
           const int fx = cam.crop_x + x, fy = cam.crop_y + y;
           const uint64_t pixel = uint64_t(fy) * uint64_t(cam.width) + uint64_t(fx);
+          const uint64_t shift = mix64(shift_key ^ pixel);  // from the seed and pixel only
           double s[3] = {0, 0, 0}, s2[3] = {0, 0, 0}, a[3] = {0, 0, 0}, a2[3] = {0, 0, 0}, hits = 0;
           double ds[3] = {0, 0, 0}, ds2[3] = {0, 0, 0};
           st.pixel_chain_rate = qmap ? (*qmap)[size_t(y) * W + x] : -1.f;
@@ -130,7 +130,7 @@ void RenderJob::run() {
               Vec3 o, d;
               float tmin, tmax;
               camera_ray(rng, fx, fy, o, d, tmin, tmax,
-                         int64_t((cfg_.sample_offset + uint64_t(k)) * uint64_t(kpix) + uint64_t(sub)));
+                         int64_t((cfg_.sample_offset + uint64_t(k)) * uint64_t(kpix) + uint64_t(sub)), shift);
               st.sample_alt_delta = Color(0.f);
               st.sample_owned_hit = false;
               st.sample_delta_L = Color(0.f);

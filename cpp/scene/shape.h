@@ -19,8 +19,8 @@ struct Shape {
   int bsdf = -1;
   int emitter = -1;
   bool flip_normals = false;
-  // The scene marks it caustic_receiver: never a chain vertex, whatever its
-  // roughness (the chain estimators' x_D side; ChainEstimator).
+  // The scene marks it caustic_receiver: never a chain vertex when glossy (the
+  // chain estimators' x_D side; a smooth one stays one; ChainEstimator).
   bool caustic_receiver = false;
   bool needs_uv = true;           // false when the BSDF uses no spatially varying texture
   float area = 0.f;

@@ -265,7 +265,7 @@ def render(
     if threads is not None and threads < 1:
         raise RenderError(f"threads must be at least 1, got {threads}")
     if sampler is None:
-        sampler = getattr(scene.desc.camera, "sampler", "independent")
+        sampler = scene.desc.camera.sampler
     if sampler not in ("independent", "stratified"):
         raise RenderError(f"sampler must be 'independent' or 'stratified', got {sampler!r}")
     name, params, warnings = _resolve_integrator(scene, integrator)
