@@ -101,6 +101,15 @@ def test_learned_split_is_eq4():
     assert k[0, 0] == 16 and np.all(k[7] == 1) and k.max() <= 16 and k.min() >= 1
     assert info["pixel_split_fraction"] == pytest.approx(float(np.mean(k > 1)))
     assert info["pixel_split_cost"] == pytest.approx(c_mean / float(np.mean(c)))
+    # where: the split only in the masked pixels (pixel_split=handoff: rate 0), the
+    # same fixed point over them with k = 1 elsewhere
+    where = np.zeros((8, 8), bool)
+    where[:4] = True
+    kw, _ = learn_pixel_split(acc, q, np.ones((8, 8)), radius=0, objective="mse", where=where)
+    assert np.all(kw[~where] == 1) and kw[0, 0] == 16
+    c_mean, v_mean = float(np.mean(kw * c)), float(np.mean(v / kw))
+    np.testing.assert_array_equal(kw[where], np.clip(np.rint(np.sqrt(
+        v * c_mean / (c * v_mean))), 1, 16)[where])
     # relmse weighs a pixel's variance by 1 / (I^2 + 0.01): a brighter pixel gets fewer
     acc.sum[0, 1] = 10.0 * acc.n                  # mean 10, variance 100
     acc.sum_sq[0, 1] = (100.0 * (acc.n - 1) / acc.n + 100.0) * acc.n
@@ -125,4 +134,9 @@ def test_mpg_pixel_split_options(sphere, sphere32_path_ref):
     k = img.pixel_split_map
     assert k is not None and (k > 1).any() and k.min() >= 1 and k.max() <= 16
     assert img.stats["pixel_split_samples"] > 0
+    # handoff: only pixels handed to the path tracer (rate 0) are split
+    ho = mpg.render(sphere, {"type": "mpg", "pixel_split": "handoff"}, spp=64, seed=2, progress=False)
+    assert ho.stats["pixel_split"] == "handoff" and ho.chain_rate_map is not None
+    kh = ho.pixel_split_map
+    assert kh is not None and (kh > 1).any() and np.all(ho.chain_rate_map[kh > 1] == 0)
     check_uniform_split(sphere, sphere32_path_ref, "pixel_split", 3, 256, "pixel_split_samples", REGIONS)

@@ -356,7 +356,8 @@ PIXEL_SPLIT_MAX = 16
 
 def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radius: int = 1,
                       objective: str = "mse", k_max: int = PIXEL_SPLIT_MAX,
-                      iterations: int = 30) -> tuple[np.ndarray, dict]:
+                      iterations: int = 30,
+                      where: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Per-pixel count k of camera samples averaged in each sample of the pixel
     (design-notes "Splitting the pixels").
 
@@ -402,6 +403,8 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
             break
         k_new = np.clip(np.rint(np.sqrt(wv * c_mean / (c * v_mean))), 1.0, float(k_max))
         k_new = np.where(np.isfinite(k_new), k_new, 1.0)
+        if where is not None:
+            k_new = np.where(where, k_new, 1.0)
         if np.array_equal(k_new, k):
             break
         k = k_new

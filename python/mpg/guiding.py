@@ -138,8 +138,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # pixel_split: "off" (default), "mse" or "relmse" (learned with the rates for
     # that error: each sample of a pixel the mean of k camera samples), or k
     # everywhere (mpg.chain_rates.learn_pixel_split)
-    psplit = _split_setting("pixel_split", params.pop("pixel_split", "off"), ("off", "mse", "relmse"))
-    if psplit in ("mse", "relmse") and not auto:
+    psplit = _split_setting("pixel_split", params.pop("pixel_split", "off"), ("off", "mse", "relmse", "handoff"))
+    if psplit in ("mse", "relmse", "handoff") and not auto:
         warnings.append(f"pixel_split={psplit} needs learned rates (chain_rate=auto); no split")
     if split == "auto" and split_given and not auto:
         warnings.append("delta_split=auto needs learned rates (chain_rate=auto); no split")
@@ -352,9 +352,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         kmap = uniform(split)
         rate_info.update(delta_split_fraction=1.0, delta_split_mean=float(split))
     smap = None
-    if psplit in ("mse", "relmse") and costs is not None and costs.n >= 2:
+    if psplit in ("mse", "relmse", "handoff") and costs is not None and costs.n >= 2:
         smap = learned(*learn_pixel_split(costs, rates(), kmap if kmap is not None else uniform(1),
-                                          objective=psplit))
+                                          objective="mse" if psplit == "handoff" else psplit,
+                                          where=(rates() <= 0.0) if psplit == "handoff" else None))
     elif isinstance(psplit, int) and psplit > 1:
         smap = uniform(psplit)
         rate_info.update(pixel_split_fraction=1.0, pixel_split_mean=float(psplit))
