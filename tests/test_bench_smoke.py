@@ -237,3 +237,58 @@ def test_reference_camera_delta(env, tmp_path):
     with pytest.raises(BenchError, match="without its own camera_delta"):
         reference.recipe(sc, time=1, spp=None, passes=4, seed=seed, method="mpg", integrator="path",
                          camera_delta="path/camera_delta=all")
+
+
+@pytest.mark.skipif(not HAS_MI, reason="the fill replaces Mitsuba's path tracer: needs Mitsuba")
+def test_reference_fill(env, tmp_path):
+    """--fill: Mitsuba's light tracer wherever it sees the pixel; the pixels it
+    cannot see (glass seen by the camera, dilated) come from the named mpg
+    integrator rendering only their bounding box (a crop window), exactly that
+    crop render's values and variances; Mitsuba's path tracer is not run. A
+    sidecar reference_fill is used by default, and then a cached Mitsuba
+    reference without the fill is not chosen, however low its noise floor."""
+    import dataclasses
+
+    import mpg
+    from mpg.bench.scenes import resolve_scene
+
+    sc = runners_scene(env)
+    info = reference.make_reference(sc, spp=4, passes=2, fill="sms_star", cache=str(tmp_path))
+    assert info["recipe"]["fill"] == "sms_star" and "--fill sms_star" in info["command"]
+    assert [r["renderer"] for r in info["renderers"]] == ["mitsuba:ptracer", "mpg:sms_star"]
+    x0, y0, w, h = info["renderers"][1]["crop"]
+    assert 0 < w * h < 24 * 24
+    rgb, var = reference.load_reference(info)
+    s = mpg.load_file(env["scene"], res=24)
+    cam = s.desc.camera
+    sub = mpg.render(mpg.Scene(desc=dataclasses.replace(s.desc, camera=dataclasses.replace(
+        cam, crop=(cam.crop[0] + x0, cam.crop[1] + y0, w, h)))), "sms_star", spp=4,
+        seed=reference.DEFAULT_SEED + 250_000, progress=False)
+    win = rgb[y0:y0 + h, x0:x0 + w]
+    filled = np.all(win == sub.rgb, axis=2)
+    n_fill = round((1.0 - info["ptracer_fraction"]) * 24 * 24)
+    assert filled.sum() >= n_fill > 0           # (a ptracer pixel may equal by chance: black)
+    np.testing.assert_array_equal(var[y0:y0 + h, x0:x0 + w][filled], sub.variance[filled])
+    # the sidecar's reference_fill is the default, and decides which cached reference is used:
+    # the same scene file beside a sidecar that asks for the fill (same content hash)
+    side = json.loads((env["dir"] / "tiny.json").read_text())
+    (tmp_path / "f").mkdir()
+    shutil.copy(env["scene"], tmp_path / "f" / "tiny.xml")
+    (tmp_path / "f" / "tiny.json").write_text(json.dumps(dict(side, reference_fill="sms_star")))
+    fsc = resolve_scene(str(tmp_path / "f" / "tiny.xml"), {"res": "24"})
+    assert fsc.content_hash() == sc.content_hash()
+    assert reference.recipe(fsc, time=1, spp=None, passes=2, seed=1, method="auto",
+                            integrator="path")["fill"] == "sms_star"
+    assert "fill" not in reference.recipe(sc, time=1, spp=None, passes=2, seed=1, method="auto",
+                                          integrator="path")
+    # env's cache holds a Mitsuba ptracer+path reference of this scene: found without the
+    # sidecar's fill, passed over with it; the fill reference is found either way
+    assert reference.find_reference(sc, env["cache"]) is not None
+    assert reference.find_reference(fsc, env["cache"]) is None
+    assert reference.find_reference(fsc, str(tmp_path))["key"] == info["key"]
+    with pytest.raises(BenchError, match="must be an mpg integrator"):
+        reference.recipe(sc, time=1, spp=None, passes=2, seed=1, method="mitsuba",
+                         integrator="path", fill="mitsuba:path")
+    with pytest.raises(BenchError, match="needs a Mitsuba reference"):
+        reference.recipe(sc, time=1, spp=None, passes=2, seed=1, method="mpg",
+                         integrator="path", fill="sms_star")

@@ -73,6 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--method mpg: render the light seen from the camera through delta "
                    "scattering only (a light in glass or a mirror) apart with this integrator "
                    "(e.g. path), half the budget; for tiny bright lights")
+    r.add_argument("--fill", metavar="INTEGRATOR",
+                   help="Mitsuba reference: render the pixels its light tracer cannot see with "
+                   "this mpg integrator (e.g. sms_star) instead of Mitsuba's path tracer "
+                   "(default: the sidecar's reference_fill)")
     r.add_argument("--cache", help="cache folder (default $MPG_CACHE or ~/.cache/mpg/references)")
     r.add_argument("--force", action="store_true", help="render even if cached")
     r.add_argument("--list", action="store_true", help="list the cached references")
@@ -141,7 +145,7 @@ def _run(args, argv) -> int:
                                   seed=ref.DEFAULT_SEED if args.seed is None else args.seed,
                                   method=args.method, integrator=args.integrator,
                                   cache=args.cache, force=args.force,
-                                  camera_delta=args.camera_delta)
+                                  camera_delta=args.camera_delta, fill=args.fill)
         print(info["exr"])
         return 0
 

@@ -11,6 +11,11 @@ How a reference is made (`mpg-bench reference SCENE --time S | --spp N`):
   this: 'mitsuba path: ...' renders path only; 'mitsuba ptracer: ...' takes
   ptracer wherever it sees the pixel (path would be biased there, e.g. a point
   light seen through glass) and path only for the pixels ptracer cannot see.
+  With `--fill INTEGRATOR` (or the sidecar's "reference_fill") those pixels
+  are rendered by that mpg integrator instead of Mitsuba's path tracer, over
+  their bounding box only, with half the budget: a point light's caustic seen
+  through glass (L-TT-D-TT-E on sphere_point) is reached by neither Mitsuba
+  renderer, but by a chain integrator such as sms_star.
 - mpg (`--method mpg`, or the sidecar says 'mpg'): one long mpg.render of
   `--integrator` (default path); its variance is the per-pixel second-moment
   estimate of the render loop.
@@ -207,7 +212,8 @@ def choose_method(scene: BenchScene, method: str) -> tuple[str, list[str] | None
 
 
 def recipe(scene: BenchScene, *, time: float | None, spp: int | None, passes: int, seed: int,
-           method: str, integrator: str, camera_delta: str | None = None) -> dict[str, Any]:
+           method: str, integrator: str, camera_delta: str | None = None,
+           fill: str | None = None) -> dict[str, Any]:
     if (time is None) == (spp is None):
         raise BenchError("give exactly one of --time and --spp for a reference")
     if time is not None and not time > 0:
@@ -229,6 +235,15 @@ def recipe(scene: BenchScene, *, time: float | None, spp: int | None, passes: in
                 raise BenchError(f"--camera-delta: '{name}' must be an mpg integrator without "
                                  "its own camera_delta")
         rec["camera_delta"] = camera_delta
+    if fill is None and m == "mitsuba":
+        fill = scene.reference_fill
+    if fill is not None:           # (absent otherwise, as camera_delta)
+        if m != "mitsuba" or "ptracer" not in (names or []):
+            raise BenchError("--fill needs a Mitsuba reference with its light tracer "
+                             f"(got method {m}, integrators {names})")
+        if parse_integrator(fill).backend != "mpg":
+            raise BenchError(f"--fill: '{fill}' must be an mpg integrator")
+        rec["fill"] = fill
     return rec
 
 
@@ -246,6 +261,8 @@ def recreate_command(scene: BenchScene, rec: dict[str, Any]) -> str:
         parts += ["--integrator", rec["integrator"]]
     if rec.get("camera_delta"):
         parts += ["--camera-delta", rec["camera_delta"]]
+    if rec.get("fill"):
+        parts += ["--fill", rec["fill"]]
     for k, v in sorted(scene.params.items()):
         parts += ["--param", f"{k}={v}"]
     return " ".join(shlex.quote(p) for p in parts)
@@ -254,10 +271,11 @@ def recreate_command(scene: BenchScene, rec: dict[str, Any]) -> str:
 def make_reference(scene: BenchScene, *, time: float | None = None, spp: int | None = None,
                    passes: int = 8, seed: int = DEFAULT_SEED, method: str = "auto",
                    integrator: str = "path", cache: str | None = None,
-                   force: bool = False, camera_delta: str | None = None) -> dict[str, Any]:
+                   force: bool = False, camera_delta: str | None = None,
+                   fill: str | None = None) -> dict[str, Any]:
     """Render (or find in the cache) a reference; returns its JSON record (with 'exr')."""
     rec = recipe(scene, time=time, spp=spp, passes=passes, seed=seed, method=method,
-                 integrator=integrator, camera_delta=camera_delta)
+                 integrator=integrator, camera_delta=camera_delta, fill=fill)
     scene_hash = scene.content_hash()
     key = key_of(scene_hash, rec)
     d = cache_dir(cache)
@@ -352,6 +370,10 @@ def _mitsuba_reference(scene: BenchScene, rec: dict, renderers: list, notes: lis
     # the sidecar named ptracer alone: path only fills the pixels ptracer cannot see
     pt_only = want_pt and scene.reference_hint and "path" not in (parse_hint(
         scene.reference_hint)[1] or ["path"])
+    fill = rec.get("fill")
+    if fill and scene_rfilter(scene) != "box":
+        raise BenchError(f"reference of {scene.label}: --fill needs the light tracer, which needs "
+                         f"a box rfilter (the scene's is '{scene_rfilter(scene)}')")
     if want_pt and scene_rfilter(scene) != "box":
         want_pt = False
         notes.append(f"ptracer not used: the scene's rfilter is '{scene_rfilter(scene)}' "
@@ -359,7 +381,7 @@ def _mitsuba_reference(scene: BenchScene, rec: dict, renderers: list, notes: lis
     n_renderers = 2 if want_pt else 1
     results = {}
     mask = None
-    for name in (["ptracer"] if want_pt else []) + ["path"]:
+    for name in (["ptracer"] if want_pt else []) + ([] if fill else ["path"]):
         spec = IntegratorSpec(f"mitsuba:{name}", "mitsuba", name)
         seed = rec["seed"] + (0 if name == "path" else 500_000)
         try:
@@ -371,7 +393,7 @@ def _mitsuba_reference(scene: BenchScene, rec: dict, renderers: list, notes: lis
                 res, m = run_mitsuba(spec, scene, seed=seed, spp=rec["spp"], passes=passes,
                                      mask=name == "ptracer")
         except BenchError as e:
-            if name == "ptracer":
+            if name == "ptracer" and not fill:
                 notes.append(f"ptracer failed, path only: {e}")
                 log(f"mpg-bench: {e}; the reference uses path only")
                 continue
@@ -389,6 +411,8 @@ def _mitsuba_reference(scene: BenchScene, rec: dict, renderers: list, notes: lis
                           "integrator_params": r.stats["integrator_params"]})
         log(f"  {spec.text} ({r.stats['variant']}): {r.spp} spp in {r.stats['passes']} passes, "
             f"{r.seconds:.1f} s")
+    if fill:
+        return _fill_reference(scene, rec, results["ptracer"], mask, renderers, notes)
     p = results["path"]
     if "ptracer" not in results:
         return (p.rgb, p.variance, 0.0,
@@ -410,6 +434,48 @@ def _mitsuba_reference(scene: BenchScene, rec: dict, renderers: list, notes: lis
              f"the {2 * NEIGHBOURHOOD + 1}x{2 * NEIGHBOURHOOD + 1} neighbourhood excluding the "
              "pixel; ptracer only where no primary ray hits a delta BSDF or misses "
              "(dilated 1 px)"))
+
+
+def _fill_reference(scene: BenchScene, rec: dict, t, mask, renderers: list, notes: list):
+    """ptracer's image wherever it sees the pixel; the rest (primary rays that
+    hit a delta BSDF or miss, dilated by one pixel) from rec["fill"], an mpg
+    integrator rendering only the bounding box of those pixels (a crop window
+    of the camera) with the other half of the budget. Each pixel keeps one
+    renderer's unbiased estimate and its variance; the choice is by geometry."""
+    import dataclasses
+
+    from mpg.render import Scene
+
+    eligible = ~dilate(mask.astype(bool), 1)
+    rgb = t.rgb.astype(np.float32).copy()
+    var = t.variance.astype(np.float32).copy()
+    todo = ~eligible
+    if todo.any():
+        ys, xs = np.nonzero(todo)
+        y0, y1, x0, x1 = int(ys.min()), int(ys.max()) + 1, int(xs.min()), int(xs.max()) + 1
+        loaded = scene.load_mpg()
+        cam = loaded.desc.camera
+        crop = (cam.crop[0] + x0, cam.crop[1] + y0, x1 - x0, y1 - y0)
+        sub = Scene(desc=dataclasses.replace(loaded.desc, camera=dataclasses.replace(cam,
+                                                                                        crop=crop)))
+        spec = parse_integrator(rec["fill"])
+        seed = rec["seed"] + 250_000
+        r = run_mpg(spec, scene, time=None if rec["time"] is None else rec["time"] / 2,
+                    spp=rec["spp"], seed=seed, loaded=sub)
+        if r.variance is None:
+            raise BenchError(f"reference of {scene.label}: {spec.text} gave no variance")
+        win = todo[y0:y1, x0:x1, None]
+        rgb[y0:y1, x0:x1] = np.where(win, r.rgb, rgb[y0:y1, x0:x1])
+        var[y0:y1, x0:x1] = np.where(win, r.variance, var[y0:y1, x0:x1])
+        renderers.append({"renderer": f"mpg:{spec.text}", "spp": r.spp, "seconds": r.seconds,
+                          "passes": r.stats.get("passes"), "seed": seed,
+                          "crop": [x0, y0, x1 - x0, y1 - y0]})
+        log(f"  mpg:{spec.text} on the {x1 - x0}x{y1 - y0} window ptracer cannot see: "
+            f"{r.spp} spp, {r.seconds:.1f} s")
+    notes.append(f"ptracer wherever it can see the pixel, mpg {rec['fill']} for the "
+                 f"{int(todo.sum())} pixels it cannot see (no Mitsuba path)")
+    return (rgb, var, float(eligible.mean()),
+            f"ptracer where eligible, mpg {rec['fill']} for the pixels it cannot see")
 
 
 def list_references(cache: str | None = None) -> list[dict[str, Any]]:
@@ -434,6 +500,11 @@ def find_reference(scene: BenchScene, cache: str | None = None) -> dict[str, Any
     """The cached reference of this scene content + params with the lowest noise floor."""
     h = scene.content_hash()
     cands = [i for i in list_references(cache) if i["scene_hash"] == h]
+    if scene.reference_fill:
+        # the sidecar says which light only a chain integrator reaches: a Mitsuba
+        # reference without that fill misses it, however low its noise floor
+        cands = [i for i in cands if i.get("recipe", {}).get("method") != "mitsuba"
+                 or i.get("recipe", {}).get("fill")]
     if not cands:
         return None
     return min(cands, key=lambda i: i["convergence"]["relmse_floor_image"])

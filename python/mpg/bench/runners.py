@@ -101,10 +101,13 @@ def _mpg_scene(scene: BenchScene):
 
 
 def run_mpg(spec: IntegratorSpec, scene: BenchScene, *, time: float | None = None,
-            spp: int | None = None, seed: int = 0, threads: int | None = None) -> RunResult:
+            spp: int | None = None, seed: int = 0, threads: int | None = None,
+            loaded=None) -> RunResult:
+    """One mpg render of the bench scene, or of `loaded` (an mpg.Scene made from
+    it, e.g. with a crop window) when given."""
     import mpg
 
-    s = _mpg_scene(scene)
+    s = loaded if loaded is not None else _mpg_scene(scene)
     _ = s.core                          # build the BVH before the clock (as mpg.render does)
     integ: Any = spec.name
     # `sampler` in an entry (path/sampler=stratified) is the render's, not the

@@ -4,8 +4,10 @@ A scene is named on the command line by a path (`scenes/sphere_glass.xml`) or a
 name looked up as scenes/eval/NAME.xml, then scenes/NAME.xml (relative to the
 current directory, then to the repository). Its sidecar NAME.json beside it
 ({"name", "description", "chains", "series", "caustic_box": [x0, y0, x1, y1],
-"reference": text}) is optional: without it there is no caustic box and the
-metrics are over the whole image only.
+"reference": text, "reference_fill": integrator}) is optional: without it
+there is no caustic box and the metrics are over the whole image only.
+"reference_fill" names an mpg integrator that renders the pixels Mitsuba's
+light tracer cannot see, in place of Mitsuba's path tracer (mpg.bench.reference).
 """
 
 from __future__ import annotations
@@ -42,6 +44,11 @@ class BenchScene:
     @property
     def reference_hint(self) -> str:
         return str(self.sidecar.get("reference", "") or "")
+
+    @property
+    def reference_fill(self) -> str | None:
+        v = self.sidecar.get("reference_fill")
+        return str(v) if v else None
 
     @property
     def label(self) -> str:
@@ -143,6 +150,11 @@ def resolve_scene(spec: str, params: dict[str, str] | None = None) -> BenchScene
             raise BenchError(f"{stem}.json: the sidecar must be a JSON object")
     name = str(sidecar.get("name") or os.path.basename(stem))
     sc = BenchScene(path=path, name=name, params=dict(params or {}), sidecar=sidecar)
+    fill = sidecar.get("reference_fill")
+    if fill is not None and (not isinstance(fill, str) or not re.fullmatch(r"[a-z_]+(/[a-z_]+=[^/]+)*",
+                                                                            fill)):
+        raise BenchError(f"{stem}.json: reference_fill must be an mpg integrator name "
+                         f"(e.g. \"sms_star\"), got {fill!r}")
     box = sidecar.get("caustic_box")
     if box is not None:
         from mpg.metrics import MetricError, box_to_slices
