@@ -633,18 +633,20 @@ def scenes() -> dict:
     """name -> dict(xml, sidecar fields except name)."""
     S = {}
 
-    def add(name, xml, description, chains, reference, series=None, box=None):
+    def add(name, xml, description, chains, reference, series=None, box=None, fill=None):
         S[name] = dict(xml=xml, description=description, chains=chains, series=series,
-                       caustic_box=None if box is None else [float(b) for b in box], reference=reference)
+                       caustic_box=None if box is None else [float(b) for b in box], reference=reference,
+                       fill=fill)
 
     ref_area = ("mitsuba ptracer+path: small area light, the caustic on the directly seen floor converges "
                 "fastest with ptracer; path for the pixels seen through glass, which ptracer cannot reach")
     add("sphere", sphere_scene(False), "Glass sphere (IOR 1.5) on a checkered diffuse floor, small disk light.",
         ["TT"], ref_area, box=sphere_box())
     add("sphere_point", sphere_scene(True), "As sphere, lit by a point light of the same power toward the sphere.",
-        ["TT"], "mitsuba ptracer: a point light seen through glass is unreachable for path tracing; floor seen "
-        "through the sphere (L-TT-D-TT-E) is unreachable for both, use an mpg long run there",
-        box=sphere_box())
+        ["TT"], "mitsuba ptracer: a point light seen through glass is unreachable for path tracing; the floor "
+        "seen through the sphere (L-TT-D-TT-E) is unreachable for both of Mitsuba's renderers, so the pixels "
+        "the light tracer cannot see are rendered by reference_fill",
+        box=sphere_box(), fill="sms_star")
     add("slab", slab_scene("SLAB: a glass slab with a bumpy top (IOR 1.5) over a diffuse floor, small disk light."),
         "Glass slab (IOR 1.5), bumpy height-field top, flat bottom, over a checkered floor, small disk light.",
         ["TT"], ref_area, box=slab_box(SLAB_CAM, 1))
@@ -709,6 +711,8 @@ def outputs() -> dict:
     for name, s in scenes().items():
         side = {"name": name, "description": s["description"], "chains": s["chains"], "series": s["series"],
                 "caustic_box": s["caustic_box"], "reference": s["reference"]}
+        if s["fill"]:
+            side["reference_fill"] = s["fill"]    # mpg-bench reference --fill
         out[f"{EVAL}/{name}.xml"] = ("text", (lambda x: lambda: x)(s["xml"]))
         out[f"{EVAL}/{name}.json"] = ("text", (lambda x: lambda: json.dumps(x, indent=2) + "\n")(side))
     return out
