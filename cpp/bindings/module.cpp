@@ -218,6 +218,9 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
   else throw std::invalid_argument("camera_delta must be all, exclude or only, got '" + cd + "'");
   if (pp.max_depth < -1) throw std::invalid_argument("max_depth must be -1 or >= 0");
   if (pp.rr_depth < 0) throw std::invalid_argument("rr_depth must be >= 0");
+  pp.delta_branch = get<int>(p, "delta_branch", 0);
+  if (pp.delta_branch < 0 || pp.delta_branch > 8)
+    throw std::invalid_argument("delta_branch must be in [0, 8], got " + std::to_string(pp.delta_branch));
   if (type == "path") return std::make_shared<PathIntegrator>(pp);
   if (type == "sms" || type == "sms_star" || type == "mpg") {
     if (!scene || !scene->committed()) throw std::runtime_error("scene not committed");

@@ -23,6 +23,10 @@ class Integrator {
   virtual Color Li_delta(const Scene&, const Vec3&, const Vec3&, float, float, PCG32&, Stats&) const {
     return Color(0.f);
   }
+  // Li_delta is a branched estimate (PathParams::delta_branch), far less noisy
+  // than the delta part of a sample's own camera path (render.cpp then leaves
+  // that part out of a split pixel's mean).
+  virtual bool delta_branched() const { return false; }
 };
 
 }  // namespace mpg

@@ -190,4 +190,96 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   return L;
 }
 
+// The light seen from the camera through delta scattering only, as trace()
+// in Only mode, except at the first `levels` delta vertices whose BSDF has two
+// delta lobes (a dielectric's reflection and refraction, Fresnel F and 1 - F):
+// there both lobes are followed, each with beta * weight * probability, the
+// expectation over the lobe choice taken exactly (trace() draws one lobe with
+// its probability and weighs it by weight alone). Term by term the same
+// expected value; the variance of the choice (a glint seen by reflection with
+// probability F ~ 0.05 is L w.p. F: variance ~ L^2 F) is gone, and what is left
+// is the pixel footprint's. A one-lobe delta BSDF (a mirror, total internal
+// reflection, a null interface) continues as in trace(). Recursion depth is at
+// most `levels` (<= 8: at most 2^8 leaves).
+Color PathIntegrator::delta_tree(const Scene& scene, SurfaceInteraction si, Vec3 d, Color beta, uint32_t depth,
+                                 float eta, int levels, PCG32& rng, Stats& st) const {
+  Color L(0.f);
+  const uint32_t max_depth = uint32_t(p_.max_depth);
+  if (p_.max_depth == 0) return L;
+  for (;;) {
+    const bool show = !(p_.hide_emitters && depth == 0);
+    if (!si.valid) {
+      if (show) {
+        for (int e : scene.infinite_emitters) {
+          const Emitter& em = scene.emitters[size_t(e)];
+          if (em.type == Emitter::Type::Directional) continue;
+          const Color Le = em.eval_env(d);
+          if (!is_black(Le)) L += beta * Le;  // (a delta prefix: weight 1, as in trace)
+        }
+      }
+      break;
+    }
+    st.path_vertices++;
+    const Shape& shape = scene.shapes[size_t(si.shape)];
+    if (shape.emitter >= 0 && show) {
+      // (no separator on a delta prefix: never a chain path, as in trace)
+      const Color Le = scene.emitted(si);
+      if (!is_black(Le)) L += beta * Le;
+    }
+    if (depth + 1 >= max_depth) break;
+    if (int(depth) >= p_.hard_depth_cap) {
+      st.depth_capped++;
+      break;
+    }
+    const BSDFContext ctx = scene.bsdfs.resolve(shape.bsdf, si);
+    if (!ctx.leaf) break;
+    const Vec2 u2(rng.next_float(), rng.next_float());
+    Vec3 wo;
+    BSDFSample bs;
+    if (levels > 0 && ctx.leaf->is_delta()) {
+      // u1 = 0 selects the first lobe (reflection: u1 <= F), u1 = 1 the second
+      // (refraction, unless F = 1); distinct lobes: branch.
+      Vec3 wo_r, wo_t;
+      const BSDFSample r = scene.bsdfs.sample(ctx, si.wi, 0.f, u2, wo_r);
+      const BSDFSample t = scene.bsdfs.sample(ctx, si.wi, 1.f, u2, wo_t);
+      const bool ok_r = r.pdf > 0.f && r.delta && !is_black(r.weight);
+      const bool ok_t = t.pdf > 0.f && t.delta && !is_black(t.weight);
+      if (ok_r && ok_t && (r.transmission != t.transmission || r.null != t.null)) {
+        st.delta_branches++;
+        // the refracted branch by recursion, the reflected one by this loop
+        const Vec3 org_t = offset_ray_origin(si.p, si.ng, wo_t);
+        st.rays++;
+        L += delta_tree(scene, scene.intersect(org_t, wo_t, 0.f, kInf), wo_t, beta * t.weight * t.pdf,
+                        depth + 1, eta * t.eta, levels - 1, rng, st);
+        bs = r;
+        bs.weight = r.weight * r.pdf;
+        wo = wo_r;
+        --levels;
+      } else {
+        bs = scene.bsdfs.sample(ctx, si.wi, rng.next_float(), u2, wo);
+      }
+    } else {
+      bs = scene.bsdfs.sample(ctx, si.wi, rng.next_float(), u2, wo);
+    }
+    if (!(bs.pdf > 0.f) || is_black(bs.weight) || !bs.delta) break;  // Only: ends at a non-delta vertex
+    beta *= bs.weight;
+    eta *= bs.eta;
+    ++depth;
+    // Russian roulette as trace (unbiased either way; it bounds the tails' cost)
+    const float bmax = max_comp(beta);
+    if (!(bmax > 0.f)) break;
+    const float q = std::min(bmax * eta * eta, 0.95f);
+    const float u_rr = rng.next_float();
+    if (int(depth) >= p_.rr_depth) {
+      if (u_rr >= q) break;
+      beta /= q;
+    }
+    const Vec3 org = offset_ray_origin(si.p, si.ng, wo);
+    d = wo;
+    st.rays++;
+    si = scene.intersect(org, d, 0.f, kInf);
+  }
+  return L;
+}
+
 }  // namespace mpg

@@ -26,6 +26,10 @@ struct PathParams {
   // Only paths (Li_delta, Stats::split_delta).
   enum class CameraDelta { All, Exclude, Only };
   CameraDelta camera_delta = CameraDelta::All;
+  // Li_delta branches at its first delta_branch delta vertices with two lobes
+  // (a dielectric's reflection and refraction): both are followed, each with
+  // its discrete weight times its probability, instead of one drawn (0: off).
+  int delta_branch = 0;
   int hard_depth_cap = 1024;  // safety net against unbounded loops (counted)
 };
 
@@ -50,12 +54,20 @@ class PathIntegrator : public Integrator {
   Color Li_delta(const Scene& scene, const Vec3& o, const Vec3& d, float tmin, float tmax, PCG32& rng,
                  Stats& stats) const override {
     stats.rays++;
+    if (p_.delta_branch > 0)
+      return delta_tree(scene, scene.intersect(o, d, tmin, tmax), d, Color(1.f), 0, 1.f, p_.delta_branch, rng,
+                        stats);
     return trace(scene, o, d, scene.intersect(o, d, tmin, tmax), rng, stats, PathParams::CameraDelta::Only);
   }
+  bool delta_branched() const override { return p_.delta_branch > 0; }
 
  private:
   Color trace(const Scene& scene, const Vec3& o, const Vec3& d, SurfaceInteraction si, PCG32& rng,
               Stats& stats, PathParams::CameraDelta mode) const;
+  // trace in Only mode from the hit si of direction d, with branching at the
+  // next `levels` two-lobe delta vertices (PathParams::delta_branch).
+  Color delta_tree(const Scene& scene, SurfaceInteraction si, Vec3 d, Color beta, uint32_t depth, float eta,
+                   int levels, PCG32& rng, Stats& stats) const;
   PathParams p_;
   std::shared_ptr<const ChainEstimator> chains_;
 };

@@ -140,7 +140,10 @@ void RenderJob::run() {
                 // the mean of this path's and k - 1 more camera paths' (each an
                 // unbiased estimate of it, the same pixel filter, the sample's own
                 // random stream).
-                Color D = st.sample_delta_L;
+                // Branched extra paths (delta_branched) are far less noisy than
+                // this path's own delta part: the mean of the k - 1 of them alone.
+                const bool branched = integrator_->delta_branched();
+                Color D = branched ? Color(0.f) : st.sample_delta_L;
                 for (int j = 1; j < ksplit; ++j) {
                   Vec3 o2, d2;
                   float tmin2, tmax2;
@@ -148,7 +151,7 @@ void RenderJob::run() {
                   st.delta_split_paths++;
                   D += integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st);
                 }
-                Ls += D * (1.f / float(ksplit));
+                Ls += D * (1.f / float(branched ? ksplit - 1 : ksplit));
               }
               L += Ls;
               if (sub > 0) st.pixel_split_samples++;

@@ -57,6 +57,7 @@ struct Stats {
   uint64_t path_vertices = 0;
   uint64_t delta_prefix_rays = 0;    // rays traced after delta scattering only (camera rays not counted)
   uint64_t delta_split_paths = 0;    // extra camera paths of the light seen through delta scattering
+  uint64_t delta_branches = 0;       // vertices where such a path followed both delta lobes (delta_branch)
   uint64_t pixel_split_samples = 0;  // extra camera samples of the pixel split (PassConfig::pixel_split_map)
   // specular chains (sms, sms_star)
   uint64_t chain_estimates = 0;      // separators where a chain was attempted
@@ -100,6 +101,7 @@ struct Stats {
     rejected_negative += o.rejected_negative; depth_capped += o.depth_capped;
     path_vertices += o.path_vertices;
     delta_prefix_rays += o.delta_prefix_rays; delta_split_paths += o.delta_split_paths;
+    delta_branches += o.delta_branches;
     pixel_split_samples += o.pixel_split_samples;
     chain_estimates += o.chain_estimates; chain_converged += o.chain_converged;
     chain_contributions += o.chain_contributions; bernoulli_trials += o.bernoulli_trials;
@@ -134,6 +136,7 @@ struct Stats {
             {"rejected_negative", double(rejected_negative)},
             {"depth_capped", double(depth_capped)}, {"path_vertices", double(path_vertices)},
             {"delta_prefix_rays", double(delta_prefix_rays)}, {"delta_split_paths", double(delta_split_paths)},
+            {"delta_branches", double(delta_branches)},
             {"pixel_split_samples", double(pixel_split_samples)},
             {"chain_estimates", double(chain_estimates)}, {"chain_converged", double(chain_converged)},
             {"chain_contributions", double(chain_contributions)},

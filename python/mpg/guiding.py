@@ -35,6 +35,11 @@ def _split_setting(name: str, value, words: tuple[str, ...]):
     return k
 
 
+# mpg's default delta_branch: against 0, in one run (20 s, 2 seeds), MSE 1.77x
+# lower on slab, 1.53x pool, 1.39x double_slabs, 1.08x sphere, ring the same
+# (bench/results/compare-branch-suite; 3 levels did half as well on double_slabs).
+DELTA_BRANCH = 8
+
 # Time of one tried chain vertex (a traced seed vertex or a line-search try's
 # reprojected one) in units of one path-tracer ray: bench/step_cost.py
 # ("ratio per tried vertex") measured 3.1 (sphere), 1.9 (double_slabs), 1.7
@@ -134,6 +139,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # delta_split: "auto" (learned with the rates), or k camera paths per sample
     # for the light seen through delta scattering only everywhere (1: off)
     split_given = "delta_split" in params
+    # delta_branch: the split's extra paths follow both lobes at their first N
+    # two-lobe delta vertices (design-notes "Branching the paths of the light
+    # seen in the glass"); mpg's default, the baselines (path, sms*) keep 0
+    params.setdefault("delta_branch", DELTA_BRANCH)
     split = _split_setting("delta_split", params.pop("delta_split", "auto"), ("auto",))
     # pixel_split: "off" (default), "mse" or "relmse" (learned with the rates for
     # that error: each sample of a pixel the mean of k camera samples), or k
@@ -347,7 +356,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             # too little training (< 2 spp): the training rate throughout
             qmap, rate_info = None, {}
         if split == "auto" and costs.n > 0:
-            kmap = learned(*learn_delta_split(costs, rates(), objective=objective))
+            kmap = learned(*learn_delta_split(costs, rates(), objective=objective,
+                                              branched=int(params.get("delta_branch", 0)) > 0))
     if isinstance(split, int) and split > 1:
         kmap = uniform(split)
         rate_info.update(delta_split_fraction=1.0, delta_split_mean=float(split))

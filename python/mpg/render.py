@@ -19,7 +19,7 @@ from mpg.scene.desc import IntegratorDesc, SceneDesc
 # Integrators implemented by the core, and the papers' names that map onto
 # them until their own implementation lands (kept as hints, with a warning).
 IMPLEMENTED = {"path", "sms", "sms_star", "mpg"}
-PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters", "camera_delta"}
+PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters", "camera_delta", "delta_branch"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
                 "threshold", "max_iterations", "min_step", "step_halvings", "form", "glossy_threshold",
                 "mis", "chain_rate"}
@@ -98,7 +98,7 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
         GUIDE_PARAMS if name == "mpg" else set())
     core_params = {k: v for k, v in params.items() if k in allowed}
     for k in ("max_chain", "max_trials", "max_iterations", "step_halvings", "max_depth",
-              "rr_depth", "stree_threshold", "knn_k", "photons"):
+              "rr_depth", "stree_threshold", "knn_k", "photons", "delta_branch"):
         if k == "step_halvings" and str(core_params.get(k)).strip().lower() == "auto":
             if name != "mpg" or "guide" in core_params:
                 raise RenderError("step_halvings 'auto' is chosen by mpg's training loop; "
