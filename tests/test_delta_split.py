@@ -118,6 +118,15 @@ def test_learned_split_is_eq3():
     kt, _ = learn_delta_split(acc, q, radius=0, objective="mse", branched=True)
     np.testing.assert_array_equal(kt, np.where(var_d * C > TREE_COST * 3.0 * V, 2.0, 1.0))
     assert np.all(kt[0] == 2) and np.all(kt[1:] == 1)
+    # the threshold is TREE_COST: B C / (o V) = 1.5 gets none (a rule without the
+    # cost factor would split), 2.1 gets one (Eq. 3 would round sqrt(2.1) to 1)
+    vb = np.zeros((4, 4))
+    vb[0, :] = 1.5 * 3.0 * V / C
+    vb[1, :] = 2.1 * 3.0 * V / C
+    accb = _acc(vb, var_t, d_rays, rays=4.0)
+    accb.chain_steps, accb.walk_steps = acc.chain_steps.copy(), acc.walk_steps.copy()
+    kb2, _ = learn_delta_split(accb, q, radius=0, objective="mse", branched=True)
+    assert TREE_COST == 2.0 and np.all(kb2[0] == 1) and np.all(kb2[1] == 2) and np.all(kb2[2:] == 1)
     # cheaper samples (rate 0: no chain cost) -> fewer extra paths; the cap
     k0, _ = learn_delta_split(acc, np.zeros((4, 4), np.float32), radius=0, objective="mse")
     assert np.all(k0 <= k) and k0.sum() < k.sum()
@@ -147,6 +156,8 @@ def test_mpg_splits_where_the_camera_sees_glass_and_stays_unbiased(sphere, spher
     for y, x in zip(*np.nonzero(lit)):
         near[max(0, y - 3):y + 4, max(0, x - 3):x + 4] = True
     assert not (k > 1)[~near].any()
+    # mpg's default branches those pixels' extra paths (delta_branch = 8)
+    assert img.stats["integrator_params"]["delta_branch"] == 8 and img.stats["delta_branches"] > 0
     off = mpg.render(sphere, {"type": "mpg", "delta_split": 1}, spp=16, seed=2, progress=False)
     assert off.delta_split_map is None and off.stats["delta_split"] == "off"
     check_uniform_split(sphere, sphere32_path_ref, "delta_split", 4, 512, "delta_split_paths", REGIONS)
