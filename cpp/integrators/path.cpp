@@ -171,16 +171,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
 
     ++depth;
 
-    // Russian roulette (Mitsuba 3's rule), decided before the ray is traced: a
-    // path it ends costs no intersection.
-    const float bmax = max_comp(beta);
-    if (!(bmax > 0.f)) break;
-    const float q = std::min(bmax * eta * eta, 0.95f);
-    const float u_rr = rng.next_float();
-    if (int(depth) >= p_.rr_depth) {
-      if (u_rr >= q) break;
-      beta /= q;
-    }
+    if (!survives_roulette(beta, eta, depth, rng)) break;
     const Vec3 org = offset_ray_origin(si.p, si.ng, wo);
     d = wo;
     st.rays++;
@@ -265,15 +256,8 @@ Color PathIntegrator::delta_tree(const Scene& scene, SurfaceInteraction si, Vec3
     beta *= bs.weight;
     eta *= bs.eta;
     ++depth;
-    // Russian roulette as trace (unbiased either way; it bounds the tails' cost)
-    const float bmax = max_comp(beta);
-    if (!(bmax > 0.f)) break;
-    const float q = std::min(bmax * eta * eta, 0.95f);
-    const float u_rr = rng.next_float();
-    if (int(depth) >= p_.rr_depth) {
-      if (u_rr >= q) break;
-      beta /= q;
-    }
+    // Russian roulette as trace's (unbiased either way; it bounds the tails' cost)
+    if (!survives_roulette(beta, eta, depth, rng)) break;
     const Vec3 org = offset_ray_origin(si.p, si.ng, wo);
     d = wo;
     st.rays++;

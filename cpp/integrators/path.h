@@ -6,6 +6,7 @@
 // probability min(max(beta) * eta^2, 0.95).
 #pragma once
 
+#include <algorithm>
 #include <memory>
 
 #include "integrators/integrator.h"
@@ -64,6 +65,20 @@ class PathIntegrator : public Integrator {
  private:
   Color trace(const Scene& scene, const Vec3& o, const Vec3& d, SurfaceInteraction si, PCG32& rng,
               Stats& stats, PathParams::CameraDelta mode) const;
+  // Russian roulette (Mitsuba 3's rule) at the path's new depth, decided
+  // before the ray is traced (a path it ends costs no intersection); draws one
+  // variate unless beta is black. false: the path ends.
+  bool survives_roulette(Color& beta, float eta, uint32_t depth, PCG32& rng) const {
+    const float bmax = max_comp(beta);
+    if (!(bmax > 0.f)) return false;
+    const float q = std::min(bmax * eta * eta, 0.95f);
+    const float u_rr = rng.next_float();
+    if (int(depth) >= p_.rr_depth) {
+      if (u_rr >= q) return false;
+      beta /= q;
+    }
+    return true;
+  }
   // trace in Only mode from the hit si of direction d, with branching at the
   // next `levels` two-lobe delta vertices (PathParams::delta_branch).
   Color delta_tree(const Scene& scene, SurfaceInteraction si, Vec3 d, Color beta, uint32_t depth, float eta,
