@@ -77,11 +77,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         add(beta * Le * w);
       }
     }
-    if (depth + 1 >= max_depth) break;
-    if (int(depth) >= p_.hard_depth_cap) {
-      st.depth_capped++;
-      break;
-    }
+    if (!may_scatter(depth, st)) break;
     const BSDFContext ctx = scene.bsdfs.resolve(shape.bsdf, si);
     if (!ctx.leaf) break;
 
@@ -195,7 +191,6 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
 Color PathIntegrator::delta_tree(const Scene& scene, SurfaceInteraction si, Vec3 d, Color beta, uint32_t depth,
                                  float eta, int levels, PCG32& rng, Stats& st) const {
   Color L(0.f);
-  const uint32_t max_depth = uint32_t(p_.max_depth);
   if (p_.max_depth == 0) return L;
   for (;;) {
     const bool show = !(p_.hide_emitters && depth == 0);
@@ -217,11 +212,7 @@ Color PathIntegrator::delta_tree(const Scene& scene, SurfaceInteraction si, Vec3
       const Color Le = scene.emitted(si);
       if (!is_black(Le)) L += beta * Le;
     }
-    if (depth + 1 >= max_depth) break;
-    if (int(depth) >= p_.hard_depth_cap) {
-      st.depth_capped++;
-      break;
-    }
+    if (!may_scatter(depth, st)) break;
     const BSDFContext ctx = scene.bsdfs.resolve(shape.bsdf, si);
     if (!ctx.leaf) break;
     const Vec2 u2(rng.next_float(), rng.next_float());

@@ -65,6 +65,16 @@ class PathIntegrator : public Integrator {
  private:
   Color trace(const Scene& scene, const Vec3& o, const Vec3& d, SurfaceInteraction si, PCG32& rng,
               Stats& stats, PathParams::CameraDelta mode) const;
+  // Whether a path at vertex `depth` may scatter again: not at max_depth
+  // (segments, -1 unbounded) nor past the safety cap (counted).
+  bool may_scatter(uint32_t depth, Stats& st) const {
+    if (depth + 1 >= uint32_t(p_.max_depth)) return false;
+    if (int(depth) >= p_.hard_depth_cap) {
+      st.depth_capped++;
+      return false;
+    }
+    return true;
+  }
   // Russian roulette (Mitsuba 3's rule) at the path's new depth, decided
   // before the ray is traced (a path it ends costs no intersection); draws one
   // variate unless beta is black. false: the path ends.
