@@ -65,6 +65,7 @@ void RenderJob::run() {
   const std::vector<float>* kmap = cfg_.delta_split_map.get();
   if (kmap && kmap->size() != size_t(W) * H) kmap = nullptr;
   const std::vector<float>* smap = cfg_.pixel_split_map.get();
+  const bool branched = integrator_->delta_branched();  // (Li_delta's kind, once per pass)
   if (smap && smap->size() != size_t(W) * H) smap = nullptr;
   int nthreads = cfg_.threads > 0 ? cfg_.threads : int(std::thread::hardware_concurrency());
   nthreads = std::max(1, std::min(nthreads, tiles_total_));
@@ -142,7 +143,6 @@ void RenderJob::run() {
                 // random stream).
                 // Branched extra paths (delta_branched) are far less noisy than
                 // this path's own delta part: the mean of the k - 1 of them alone.
-                const bool branched = integrator_->delta_branched();
                 Color D = branched ? Color(0.f) : st.sample_delta_L;
                 for (int j = 1; j < ksplit; ++j) {
                   Vec3 o2, d2;

@@ -139,11 +139,11 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # delta_split: "auto" (learned with the rates), or k camera paths per sample
     # for the light seen through delta scattering only everywhere (1: off)
     split_given = "delta_split" in params
+    split = _split_setting("delta_split", params.pop("delta_split", "auto"), ("auto",))
     # delta_branch: the split's extra paths follow both lobes at their first N
     # two-lobe delta vertices (design-notes "Branching the paths of the light
     # seen in the glass"); mpg's default, the baselines (path, sms*) keep 0
     params.setdefault("delta_branch", DELTA_BRANCH)
-    split = _split_setting("delta_split", params.pop("delta_split", "auto"), ("auto",))
     # pixel_split: "off" (default), "mse" or "relmse" (learned with the rates for
     # that error: each sample of a pixel the mean of k camera samples), or k
     # everywhere (mpg.chain_rates.learn_pixel_split)
@@ -357,7 +357,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             qmap, rate_info = None, {}
         if split == "auto" and costs.n > 0:
             kmap = learned(*learn_delta_split(costs, rates(), objective=objective,
-                                              branched=int(params.get("delta_branch", 0)) > 0))
+                                              branched=params["delta_branch"] > 0))
     if isinstance(split, int) and split > 1:
         kmap = uniform(split)
         rate_info.update(delta_split_fraction=1.0, delta_split_mean=float(split))

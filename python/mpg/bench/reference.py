@@ -411,14 +411,15 @@ def _mitsuba_reference(scene: BenchScene, rec: dict, renderers: list, notes: lis
                           "integrator_params": r.stats["integrator_params"]})
         log(f"  {spec.text} ({r.stats['variant']}): {r.spp} spp in {r.stats['passes']} passes, "
             f"{r.seconds:.1f} s")
-    if fill:
-        return _fill_reference(scene, rec, results["ptracer"], mask, renderers, notes)
-    p = results["path"]
     if "ptracer" not in results:
+        p = results["path"]
         return (p.rgb, p.variance, 0.0,
                 "Mitsuba path only (variance from passes)")
     t = results["ptracer"]
     eligible = ~dilate(mask.astype(bool), 1)
+    if fill:
+        return _fill_reference(scene, rec, t, eligible, renderers, notes)
+    p = results["path"]
     if pt_only:
         chose = eligible
         rgb = np.where(chose[:, :, None], t.rgb, p.rgb).astype(np.float32)
@@ -436,7 +437,7 @@ def _mitsuba_reference(scene: BenchScene, rec: dict, renderers: list, notes: lis
              "(dilated 1 px)"))
 
 
-def _fill_reference(scene: BenchScene, rec: dict, t, mask, renderers: list, notes: list):
+def _fill_reference(scene: BenchScene, rec: dict, t, eligible: np.ndarray, renderers: list, notes: list):
     """ptracer's image wherever it sees the pixel; the rest (primary rays that
     hit a delta BSDF or miss, dilated by one pixel) from rec["fill"], an mpg
     integrator rendering only the bounding box of those pixels (a crop window
@@ -446,7 +447,6 @@ def _fill_reference(scene: BenchScene, rec: dict, t, mask, renderers: list, note
 
     from mpg.render import Scene
 
-    eligible = ~dilate(mask.astype(bool), 1)
     rgb = t.rgb.astype(np.float32).copy()
     var = t.variance.astype(np.float32).copy()
     todo = ~eligible
