@@ -123,6 +123,38 @@ def test_learned_split_is_eq4():
     assert np.isfinite(kn).all() and kn.min() >= 1
 
 
+def test_learned_split_models_branched_delta_paths():
+    """With branched delta paths (mpg's delta_branch > 0) a pixel whose
+    variance is the light seen in the glass and whose delta split is 2 keeps
+    BRANCH_RESIDUAL of that light's variance, not half, at TREE_COST o per
+    extra path: the map is Eq. 4's fixed point under that model and splits
+    such a pixel less than the unbranched model does."""
+    from mpg.chain_rates import BRANCH_RESIDUAL, TREE_COST
+    rng = np.random.default_rng(1)
+    var_t = rng.uniform(0.0, 1.0, (8, 8))
+    var_t[0, 0] = 400.0
+    rays = rng.uniform(2.0, 8.0, (8, 8))
+    acc = _acc(var_t, rays)
+    n = acc.n
+    var_d = np.zeros((8, 8))
+    var_d[0, 0] = 390.0                          # nearly all of the pixel's variance
+    acc.delta_sum = np.zeros((8, 8, 3))
+    acc.delta_sum_sq = np.repeat((var_d * (n - 1) / n)[..., None] * n, 3, axis=2)
+    acc.delta_rays = np.full((8, 8), 3.0 * n)    # o = 4
+    kd = np.ones((8, 8))
+    kd[0, 0] = 2.0
+    q = np.ones((8, 8), np.float32)
+    kb, _ = learn_pixel_split(acc, q, kd, radius=0, objective="mse", branched=True)
+    ku, _ = learn_pixel_split(acc, q, kd, radius=0, objective="mse", branched=False)
+    o = 4.0
+    v = var_t.copy()
+    v[0, 0] -= (1.0 - BRANCH_RESIDUAL) * 390.0
+    c = rays + (kd - 1.0) * o * TREE_COST
+    c_mean, v_mean = float(np.mean(kb * c)), float(np.mean(v / kb))
+    np.testing.assert_array_equal(kb, np.clip(np.rint(np.sqrt(v * c_mean / (c * v_mean))), 1, 16))
+    assert kb[0, 0] < ku[0, 0]
+
+
 def test_mpg_pixel_split_options(sphere, sphere32_path_ref):
     """mpg learns a map with pixel_split=mse (off by default); a uniform
     pixel_split=3 stays unbiased against the path tracer (|z| < 5); bad

@@ -300,6 +300,14 @@ DELTA_SPLIT_MAX = 16
 # levels, 2.13 / 1.73 at 8.
 TREE_COST = 2.0
 
+# What a branched delta path leaves of the variance of the light seen through
+# delta scattering only, as a fraction of an unbranched sample's: measured
+# 1/23-1/26 on the sphere's and double_slabs' pixels that see the light in the
+# glass (tests/test_delta_split.py::
+# test_branched_paths_stay_unbiased_and_cut_the_glints_variance). The pixel
+# split's model (learn_pixel_split, branched=True) uses it.
+BRANCH_RESIDUAL = 1.0 / 24.0
+
 
 def learn_delta_split(acc: CostAccumulator, q: np.ndarray, radius: int = 3, objective: str = "relmse",
                       k_max: int = DELTA_SPLIT_MAX, branched: bool = False) -> tuple[np.ndarray, dict]:
@@ -373,7 +381,8 @@ PIXEL_SPLIT_MAX = 16
 def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radius: int = 1,
                       objective: str = "mse", k_max: int = PIXEL_SPLIT_MAX,
                       iterations: int = 30,
-                      where: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+                      where: np.ndarray | None = None,
+                      branched: bool = False) -> tuple[np.ndarray, dict]:
     """Per-pixel count k of camera samples averaged in each sample of the pixel
     (design-notes "Splitting the pixels").
 
@@ -391,7 +400,13 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
     w V is averaged over the (2 radius + 1)^2 window. This is adaptive
     sampling with a map fixed before the render: any fixed k >= 1 leaves the
     image unbiased, and where training saw no variance k = 1 (a firefly no
-    training sample saw is not split)."""
+    training sample saw is not split).
+
+    branched (the delta split's extra paths are branched, delta_branch > 0,
+    and a split sample leaves its own delta part out): where kd > 1 the light
+    seen through delta scattering only keeps BRANCH_RESIDUAL of its variance,
+    not 1 / kd, and each extra path costs TREE_COST o, as in
+    learn_delta_split."""
     shape = acc.delta_rays.shape
     info: dict = {}
     if acc.n < 2:
@@ -407,9 +422,10 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
     var_d = _sample_variance(acc.delta_sum, acc.delta_sum_sq, n)
     qc = np.clip(q, 1e-3, 1.0)
     v = np.where(q > 0.0, var_t + (1.0 / qc - 1.0 / np.maximum(q_t, 1e-3)) * m2, alt_mse)
-    v = np.maximum(v - (1.0 - 1.0 / kd) * var_d, 0.0)
+    kept = np.where(kd > 1.0, BRANCH_RESIDUAL, 1.0) if branched else 1.0 / kd
+    v = np.maximum(v - (1.0 - kept) * var_d, 0.0)
     o = 1.0 + _finite(acc.delta_rays) / n
-    c = c0 + np.where(q > 0.0, qc * c1, -mis) + (kd - 1.0) * o
+    c = c0 + np.where(q > 0.0, qc * c1, -mis) + (kd - 1.0) * o * (TREE_COST if branched else 1.0)
     c = np.maximum(c, 1e-6)
     wv = _box_blur(_weights(mean, objective, radius) * v, radius)
     k = np.ones(shape)

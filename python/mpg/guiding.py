@@ -365,7 +365,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     if psplit in ("mse", "relmse", "handoff") and costs is not None and costs.n >= 2:
         smap = learned(*learn_pixel_split(costs, rates(), kmap if kmap is not None else uniform(1),
                                           objective="mse" if psplit == "handoff" else psplit,
-                                          where=(rates() <= 0.0) if psplit == "handoff" else None))
+                                          where=(rates() <= 0.0) if psplit == "handoff" else None,
+                                          branched=params["delta_branch"] > 0))
     elif isinstance(psplit, int) and psplit > 1:
         smap = uniform(psplit)
         rate_info.update(pixel_split_fraction=1.0, pixel_split_mean=float(psplit))
