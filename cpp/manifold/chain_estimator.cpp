@@ -165,7 +165,7 @@ void count_seed(int n, TrialTally* tally) {
 bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
                            const std::vector<Vec2>& offsets, const ChainDistribution* guide,
                            PCG32& rng, ManifoldChain& chain, std::string& tau, Stats& st,
-                           TrialTally* tally) const {
+                           TrialTally* tally, const std::string* want_tau) const {
   if (tally) *tally = TrialTally{};
   if (guide && rng.next_float() < p_.guide_fraction) {
     // Learned seed (MPG Sec. 5.5): tau ~ P_e(tau | n), omega_D ~ the vMF mixture of
@@ -182,6 +182,10 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     tau.assign(size_t(n), 'T');
     for (int i = 0; i < n; ++i)
       if (bits & (1u << i)) tau[size_t(i)] = 'R';
+    if (want_tau && tau != *want_tau) {  // cannot hit: no seed traced, no walk
+      st.trials_tau_cut++;
+      return false;
+    }
     chain.xL = lp.p;
     chain.nL = lp.n;
     WalkFailure why = WalkFailure::None;
@@ -259,6 +263,10 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
         reflect = rng.next_float() < F;
       }
       v.reflect = reflect;
+      if (want_tau && size_t(i) < want_tau->size() && (reflect ? 'R' : 'T') != (*want_tau)[size_t(i)]) {
+        st.trials_tau_cut++;  // cannot hit
+        return false;
+      }
       if (!ManifoldWalk::scatter(wi, v.n, v.eta, reflect, d)) {
         st.walk_failures[size_t(WalkFailure::TotalInternalReflection)]++;
         return false;
@@ -405,7 +413,8 @@ Round ChainEstimator::round(const DVec3& xD, const DVec3& nD, const LightPoint& 
   mis_round(beta, [&] { return rng.next_double(); }, [&] {
     st.bernoulli_trials++;
     rd.tried = true;
-    rd.hit = trial(xD, nD, lp, n, offsets, seed_guide, rng, other, tau2, st, tally ? &rd.tally : nullptr) &&
+    rd.hit = trial(xD, nD, lp, n, offsets, seed_guide, rng, other, tau2, st, tally ? &rd.tally : nullptr,
+                   &tau_star) &&
              tau2 == tau_star && glm::length(glm::normalize(other.v[0].p - xD) - w_star) < p_.uniqueness_threshold;
     return rd.hit;
   });

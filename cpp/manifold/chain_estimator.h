@@ -186,11 +186,13 @@ class ChainEstimator {
   int sample_n(float u, int nmax) const;
   // P(n) of the mixture of the initial law and the learned one (truncated at nmax).
   double pmf_n_mix(int n, int nmax, const ChainDistribution* d, double learned_mass) const;
-  // One trial: seed + walk. Fills chain and tau on success.
+  // One trial: seed + walk. Fills chain and tau on success. With want_tau (a
+  // Bernoulli trial, which hits only a chain of those letters) the trial stops,
+  // unsuccessful, as soon as its seed's letters differ: the walk keeps them.
   bool trial(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
              const std::vector<Vec2>& offsets, const ChainDistribution* guide, PCG32& rng,
              ManifoldChain& chain, std::string& tau, Stats& st,
-             TrialTally* tally = nullptr) const;
+             TrialTally* tally = nullptr, const std::string* want_tau = nullptr) const;
   Color kappa(const ManifoldChain& chain, const std::string& tau) const;
   // The leaf of (x_D, x_L), or null (no guide, or an empty leaf).
   const ChainDistribution* guide_at(const Vec3& xD, const Vec3& xL, Stats* st) const;

@@ -87,6 +87,7 @@ struct Stats {
   std::array<uint64_t, 11> walk_failures{};  // by WalkFailure
   // guiding (mpg)
   uint64_t guided_trials = 0;        // trials whose seed came from the learned distribution
+  uint64_t trials_tau_cut = 0;       // Bernoulli trials stopped early: their letters differ
   uint64_t chain_inactive = 0;       // separators skipped by selective activation
   uint64_t chain_skipped = 0;        // separators skipped by the roulette (chain_rate < 1)
   uint64_t chain_handed = 0;         // separators in pixels of rate 0 (the path tracer's light whole)
@@ -119,6 +120,7 @@ struct Stats {
       limit_censored[h] += o.limit_censored[h];
     }
     guided_trials += o.guided_trials;
+    trials_tau_cut += o.trials_tau_cut;
     chain_inactive += o.chain_inactive;
     chain_skipped += o.chain_skipped;
     chain_handed += o.chain_handed;
@@ -145,7 +147,8 @@ struct Stats {
             {"bernoulli_ns", double(bernoulli_ns)}, {"guide_ns", double(guide_ns)},
             {"walk_steps", double(walk_steps)}, {"walk_reprojections", double(walk_reprojections)}, {"walk_off_surface", double(walk_off_surface)},
             {"chain_steps", double(chain_steps)},
-            {"guided_trials", double(guided_trials)}, {"chain_inactive", double(chain_inactive)},
+            {"guided_trials", double(guided_trials)}, {"trials_tau_cut", double(trials_tau_cut)},
+            {"chain_inactive", double(chain_inactive)},
             {"chain_skipped", double(chain_skipped)},
             {"chain_handed", double(chain_handed)},
             {"subpath_samples", double(subpaths.size())},
