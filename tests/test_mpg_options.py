@@ -128,7 +128,9 @@ def test_mpg_photon_init_matches_the_mirror_closed_form(params):
 
 
 @pytest.mark.parametrize("key,value", [("product", "maybe"), ("selective", "2x"), ("photons", "many"),
-                                       ("init", "camera"), ("photons", 0)])
+                                       ("init", "camera"), ("photons", 0),
+                                       ("training_guide_fraction", 1.0),
+                                       ("training_guide_fraction", "half")])
 def test_bad_mpg_parameters_are_named(key, value, scenes_dir):
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="8")
     with pytest.raises(RenderError, match=key):

@@ -24,7 +24,7 @@ CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max
                 "threshold", "max_iterations", "min_step", "step_halvings", "form", "glossy_threshold",
                 "mis", "chain_rate"}
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
-                "guide_dir", "training_fraction", "stree_c", "stree_epsilon", "stree_filter",
+                "guide_dir", "training_fraction", "training_guide_fraction", "stree_c", "stree_epsilon", "stree_filter",
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
                 "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff",
                 "chain_handoff_negligible",
@@ -111,7 +111,8 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
             except (TypeError, ValueError):
                 raise RenderError(f"parameter {k} must be an integer, got '{core_params[k]}'") from None
     for k in ("continuation", "uniqueness_threshold", "threshold", "min_step", "glossy_threshold",
-              "guide_fraction", "training_fraction", "stree_c", "stree_epsilon", "chain_rate",
+              "guide_fraction", "training_guide_fraction", "training_fraction", "stree_c",
+              "stree_epsilon", "chain_rate",
               "chain_rate_min", "chain_rate_train", "chain_handoff_negligible"):
         if k == "chain_rate" and name == "mpg" and str(core_params.get(k)).strip().lower() == "auto":
             if "guide" in core_params:
