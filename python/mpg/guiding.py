@@ -42,12 +42,12 @@ DELTA_BRANCH = 8
 
 # mpg's default guide_fraction: alpha of MPG Eq. 13, the guided share of seed
 # chains, in the render and (unless training_guide_fraction says otherwise) in
-# the training passes. The paper takes 0.5 by the path-guiding convention; 0.8
-# measured 1.3-1.8x lower MSE on double_slabs (4 runs), up to 1.2x on sphere,
-# slab and pool, 1.3-1.4x higher on ring (still 3x below path). 0.8 in the
-# render only (training at 0.5) gained nothing (design-notes "The guided share
-# of seed chains"; docs/results.md, ninth and tenth sessions).
-GUIDE_FRACTION = 0.8
+# the training passes: the paper's 0.5. Before the Bernoulli trials stopped at
+# differing letters, 0.8 measured 1.3-1.8x lower MSE on double_slabs; with the
+# cut, 0.5 and 0.8 tie there and on the sphere, and 0.8 is 1.3-1.4x worse on
+# ring (design-notes "The guided share of seed chains"; docs/results.md, ninth
+# and tenth sessions).
+GUIDE_FRACTION = 0.5
 
 # Time of one tried chain vertex (a traced seed vertex or a line-search try's
 # reprojected one) in units of one path-tracer ray: bench/step_cost.py
