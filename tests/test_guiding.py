@@ -89,6 +89,38 @@ def test_stree_invariants(eps):
         assert np.any(np.all(np.isclose(leaf["xD"], xD[j]), axis=1) & ~leaf["filtered"])
 
 
+@pytest.mark.parametrize("eps,filt", [(0.1, "nearest"), (0.0, "nearest"), (0.1, "stochastic")])
+def test_stree_query_table_finds_the_descents_leaf(eps, filt):
+    """leaf_of reads the node of a 4^6 grid cell and descends from there; it
+    must give the plain descent's leaf everywhere: random points inside and
+    outside the bounds, the samples, points on the grid lines and on every
+    leaf's box faces (the splits themselves), NaN."""
+    N = 20000
+    xD, xL, d, n, tau, w = _samples(N, seed=3)
+    g = _build(xD, xL, d, n, tau, w, c=1.0, epsilon=eps, max_depth=36, filter=filt)
+    rng = np.random.default_rng(5)
+    pts = [(a, b) for a, b in zip(rng.uniform(-1.3, 1.3, (5000, 3)), rng.uniform(-1.3, 1.3, (5000, 3)))]
+    pts += [(xD[j], xL[j]) for j in range(0, N, 7)]
+    # world points whose normalised coordinates sit on grid lines and box faces:
+    # q = (x - origin) * scale, from two calls of normalise
+    q0 = np.array(g.normalise([0, 0, 0], [0, 0, 0]), np.float64)
+    q1 = np.array(g.normalise([1, 1, 1], [1, 1, 1]), np.float64)
+    scale, origin = q1 - q0, -q0 / (q1 - q0)
+    faces = [0.25, 0.5, 0.75] + [v for i in range(g.num_leaves) for v in g.leaf(i)["lo"] + g.leaf(i)["hi"]]
+    faces = np.unique(np.array(faces, np.float64))
+    for _ in range(4000):
+        q = rng.uniform(0, 1, 6)
+        q[rng.integers(0, 6, rng.integers(1, 4))] = rng.choice(faces)
+        x = (q / scale + origin).astype(np.float32)
+        x += rng.integers(-2, 3, 6) * np.spacing(x)   # a few ulps about the face: both sides of it
+        pts.append((x[:3], x[3:]))
+    pts.append(([np.nan] * 3, [0.0] * 3))
+    pts.append(([0.0] * 3, [np.nan] * 3))
+    for a, b in pts:
+        a, b = [float(v) for v in a], [float(v) for v in b]
+        assert g.leaf_of(a, b) == g.leaf_of_descent(a, b), (a, b, g.normalise(a, b))
+
+
 def _reference_stree(q, thr, eps, max_depth=36):
     """The nearest-filter build rule of supplemental Sec. 3.3 written out in
     numpy (float32 like the C++ code): leaves as (box, unfiltered ids, copy ids)."""

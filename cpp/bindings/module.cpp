@@ -817,6 +817,11 @@ PYBIND11_MODULE(_core, m) {
       .def_property_readonly("build_seconds", &GuidingState::build_seconds)
       .def_property_readonly("structure_seconds", &GuidingState::structure_seconds)
       .def("leaf_of", [](const GuidingState& g, py::object xD, py::object xL) { return g.tree().leaf_of(vec3(xD), vec3(xL)); })
+      .def("leaf_of_descent", [](const GuidingState& g, py::object xD, py::object xL) {
+        float q[6];
+        g.tree().normalise(vec3(xD), vec3(xL), q);
+        return g.tree().leaf_of_descent(q);
+      })
       .def("leaf", [](const GuidingState& g, int i) {
         if (i < 0 || size_t(i) >= g.tree().num_leaves()) throw std::out_of_range("leaf index");
         const STree::Leaf& l = g.tree().leaf(i);

@@ -336,19 +336,48 @@ void STree::build(const std::vector<SubpathSample>& samples, const Vec3& bmin, c
   tq.push([&] { build_rec(root, 0, uint32_t(samples_.size()), {}, 0, lo, hi, tq); });
   tq.run(std::max(1, cfg.threads));
   flatten(root);
+  build_top();
   codes_ = {};
   for (auto& c : coords_) c = {};
   if (cfg_.filter == STreeFilter::Stochastic && cfg_.epsilon > 0.f) stochastic_regroup();
 }
 
-int STree::leaf_of_normalised(const float q[6]) const {
+int STree::descend(int n, const float q[6]) const {
   if (nodes_.empty()) return -1;
-  int n = 0;
   while (nodes_[size_t(n)].leaf < 0) {
     const Node& nd = nodes_[size_t(n)];
     n = nd.child[q[nd.axis] < nd.split ? 0 : 1];
   }
   return nodes_[size_t(n)].leaf;
+}
+
+namespace {
+// The cell 0..3 of q on one axis between the grid lines 1/4, 1/2, 3/4, with
+// the descent's own test (q < split: left): NaN and q >= 3/4 land in 3 as
+// they go right at every split.
+inline int grid_cell(float q) { return q < 0.5f ? (q < 0.25f ? 0 : 1) : (q < 0.75f ? 2 : 3); }
+inline bool on_grid(float s) { return s == 0.25f || s == 0.5f || s == 0.75f; }
+}  // namespace
+
+void STree::build_top() {
+  top_.assign(nodes_.empty() ? 0 : size_t(1) << 12, 0);
+  for (size_t cell = 0; cell < top_.size(); ++cell) {
+    float c[6];  // the cell's centre: on the same side of every grid line as the whole cell
+    for (int a = 0; a < 6; ++a) c[a] = (float((cell >> (2 * a)) & 3u) + 0.5f) * 0.25f;
+    int n = 0;
+    while (nodes_[size_t(n)].leaf < 0 && on_grid(nodes_[size_t(n)].split)) {
+      const Node& nd = nodes_[size_t(n)];
+      n = nd.child[c[nd.axis] < nd.split ? 0 : 1];
+    }
+    top_[cell] = n;
+  }
+}
+
+int STree::leaf_of_normalised(const float q[6]) const {
+  if (nodes_.empty()) return -1;
+  size_t cell = 0;
+  for (int a = 0; a < 6; ++a) cell |= size_t(grid_cell(q[a])) << (2 * a);
+  return descend(top_[cell], q);
 }
 
 int STree::leaf_of(const Vec3& xD, const Vec3& xL) const {

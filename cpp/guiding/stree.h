@@ -81,6 +81,8 @@ class STree {
   // Leaf index of a configuration (always a leaf; -1 if the tree is empty).
   int leaf_of(const Vec3& xD, const Vec3& xL) const;
   int leaf_of_normalised(const float q[6]) const;
+  // The same leaf by the plain descent from the root (tests compare the two).
+  int leaf_of_descent(const float q[6]) const { return descend(0, q); }
   const Leaf& leaf(int i) const { return leaves_[size_t(i)]; }
   SampleSpan unfiltered(int i) const {
     const Leaf& l = leaves_[size_t(i)];
@@ -105,8 +107,15 @@ class STree {
                  const float lo[6], const float hi[6], TaskQueue& tq);
   void stochastic_regroup();
   int flatten(BuildNode& b);
+  int descend(int node, const float q[6]) const;
+  void build_top();
 
   std::vector<Node> nodes_;
+  // Where the descent of a point stands after the splits at the grid lines
+  // 1/4, 1/2, 3/4 of every axis: the node for each of the 4^6 cells of that
+  // grid (a leaf, or the first node splitting elsewhere). A query reads it
+  // and descends from there: the first ~12 levels' dependent loads become one.
+  std::vector<int> top_;
   std::vector<Leaf> leaves_;
   std::vector<SubpathSample> samples_;  // every input sample once, grouped by leaf
   // during the build only: Morton codes and per-axis coordinates of samples_
