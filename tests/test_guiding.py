@@ -350,6 +350,43 @@ def test_vmf_mixture_sampler_matches_its_density():
     assert integral == pytest.approx(1.0, abs=2e-3)
 
 
+def test_vmf_mixture_picks_its_lobes_by_weight():
+    """The lobe draw (an alias table) against the weights, chi-square at
+    significance 1e-4: 12 pairs of directions 1e-3 apart (kappa ~ 1e6) far
+    from each other, so a sample names its pair; weights spread over 10^3,
+    one pair's weight tiny, one lobe's weight zero-ish."""
+    from scipy.stats import chisquare
+
+    rng = np.random.default_rng(8)
+    K = 12
+    c = rng.normal(size=(K, 3))
+    c /= np.linalg.norm(c, axis=1, keepdims=True)
+    while np.min([np.linalg.norm(c[i] - c[j]) for i in range(K) for j in range(i)]) < 0.2:
+        c = rng.normal(size=(K, 3))
+        c /= np.linalg.norm(c, axis=1, keepdims=True)
+    d = np.repeat(c, 2, axis=0) + rng.normal(scale=1e-3, size=(2 * K, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    w = (10.0 ** rng.uniform(-1.5, 1.5, 2 * K)).astype(np.float32)
+    w[3] = 1e-4
+    w[6:8] = 2e-3
+    N = 2 * K
+    g = _core.GuidingState()
+    g.build(np.zeros((N, 3), np.float32), np.zeros((N, 3), np.float32), d.astype(np.float32),
+            np.full(N, 1, np.int32), np.zeros(N, np.uint16), w, [-1, -1, -1], [1, 1, 1], c=100.0)
+    assert g.num_leaves == 1
+    M = 300000
+    s = g.sample_dir(0, 1, 0, uniform_u(M, 3, 9))
+    pair = np.argmax(s @ c.T, axis=1)
+    assert np.all(np.max(s @ c.T, axis=1) > 0.99)   # every sample inside its pair's lobes
+    counts = np.bincount(pair, minlength=K)
+    expect = w.reshape(K, 2).sum(axis=1).astype(np.float64)
+    expect *= M / expect.sum()
+    big = expect > 20   # chi-square needs expected counts; the tiny pair is checked apart
+    p = chisquare(counts[big], expect[big] * counts[big].sum() / expect[big].sum()).pvalue
+    assert p > 1e-4, (counts, expect)
+    assert counts[~big].sum() <= 5 * expect[~big].sum() + 10
+
+
 # --- the mpg integrator ------------------------------------------------------
 
 import mpg  # noqa: E402

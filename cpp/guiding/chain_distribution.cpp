@@ -65,6 +65,41 @@ void nearest_distances(const Vec3* d, size_t m, float* best) {
 }
 }  // namespace
 
+// Vose's alias method over the lobes' pmf (as DiscreteDistribution normalised
+// it): m bins of mass 1/m, each split between its own lobe (q) and one alias.
+// Small and large bins are paired in index order, so the table is a
+// function of the weights alone. Zero-weight lobes get q = 0 and are never
+// drawn unless every lobe has zero weight (then dist is empty and so is this).
+static void build_alias(ChainDistribution::Lobes& L) {
+  const size_t m = L.mu.size();
+  L.entries.assign(m, ChainDistribution::LobeEntry{});
+  if (m == 0 || L.dist.empty()) { L.entries.clear(); return; }
+  std::vector<double> p(m);
+  std::vector<uint32_t> small, large;
+  for (size_t i = 0; i < m; ++i) {
+    p[i] = double(L.dist.pmf(i)) * double(m);
+    (p[i] < 1.0 ? small : large).push_back(uint32_t(i));
+  }
+  for (size_t i = 0; i < m; ++i) {
+    L.entries[i].mu = L.mu[i];
+    L.entries[i].kappa = L.kappa[i];
+    L.entries[i].q = 1.f;
+    L.entries[i].alias = uint32_t(i);
+  }
+  size_t si = 0, li = 0;
+  while (si < small.size() && li < large.size()) {
+    const uint32_t s = small[si++], l = large[li];
+    L.entries[s].q = float(p[s]);
+    L.entries[s].alias = l;
+    p[l] -= 1.0 - p[s];
+    if (p[l] < 1.0) {  // the large one is small now
+      ++li;
+      small.push_back(l);
+    }
+  }
+  // What is left holds (up to rounding) exactly its own mass: q = 1.
+}
+
 void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uint32_t* idx, size_t nidx) {
   // Group the samples by (n, tau) in their given order: a small flat table of
   // group keys (a leaf rarely has more than a few dozen types).
@@ -139,6 +174,7 @@ void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uin
       L.kappa[i] = std::isinf(sg) ? kSingleKappa : std::min(kMaxKappa, 1.f / std::max(sg * sg, 1e-30f));
     }
     L.dist.build(L.weight);
+    build_alias(L);
     lobes_.emplace(std::make_pair(int(groups[g].key >> 16) + 1, uint16_t(groups[g].key & 0xffffu)), std::move(L));
   }
 }
@@ -165,12 +201,17 @@ const ChainDistribution::Lobes* ChainDistribution::lobes(int n, uint16_t tau) co
   return it == lobes_.end() ? nullptr : &it->second;
 }
 
-bool ChainDistribution::sample_dir(int n, uint16_t tau, float u_lobe, const Vec2& u, Vec3& dir) const {
+bool ChainDistribution::sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, Vec3& dir) const {
   const Lobes* L = lobes(n, tau);
-  if (!L || L->dist.empty()) return false;
-  const size_t i = L->dist.sample(u_lobe);
-  const Vec3 local = warp::square_to_vmf(u, L->kappa[i]);
-  dir = Frame(L->mu[i]).to_world(local);
+  if (!L || L->entries.empty()) return false;
+  // the alias table's bin from u_lobe, and the fraction within it for q
+  const size_t m = L->entries.size();
+  const double x = u_lobe * double(m);  // a double: the fraction keeps its bits for large m
+  const size_t b = std::min(size_t(x), m - 1);
+  const LobeEntry* e = &L->entries[b];
+  if (!(x - double(b) < double(e->q))) e = &L->entries[e->alias];
+  const Vec3 local = warp::square_to_vmf(u, e->kappa);
+  dir = Frame(e->mu).to_world(local);
   return true;
 }
 

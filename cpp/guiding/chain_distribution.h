@@ -33,14 +33,26 @@ class ChainDistribution {
   bool sample_tau(int n, float u, uint16_t& tau) const;
   float pmf_tau(int n, uint16_t tau) const;
   // Direction for (n, tau); density is per solid angle.
-  bool sample_dir(int n, uint16_t tau, float u_lobe, const Vec2& u, Vec3& dir) const;
+  bool sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, Vec3& dir) const;
   float pdf_dir(int n, uint16_t tau, const Vec3& dir) const;
 
+  // What sample_dir reads of lobe i, in one 24-byte record: its vMF and its
+  // bin of an alias table over the lobe weights (Walker 1977, Vose 1991):
+  // bin i keeps lobe i with probability q, else gives `alias`. A draw reads
+  // one or two records where the CDF's guide table and binary search, then
+  // mu and kappa, missed the cache up to four times (pool: design-notes).
+  struct LobeEntry {
+    Vec3 mu;
+    float kappa;
+    float q;
+    uint32_t alias;
+  };
   struct Lobes {
     std::vector<Vec3> mu;
     std::vector<float> kappa;
     std::vector<float> weight;
-    DiscreteDistribution dist;
+    DiscreteDistribution dist;       // the mixture weights (pdf_dir)
+    std::vector<LobeEntry> entries;  // the sampler's view of the same lobes
   };
   const Lobes* lobes(int n, uint16_t tau) const;
 

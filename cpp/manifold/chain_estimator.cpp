@@ -182,7 +182,8 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     const auto tg = timed ? Clock::now() : Clock::time_point{};
     uint16_t bits = 0;
     Vec3 dir;
-    const float ut = rng.next_float(), ul = rng.next_float();
+    const float ut = rng.next_float();
+    const double ul = rng.next_double();  // the lobe: alias bin and the fraction within it
     const Vec2 u(rng.next_float(), rng.next_float());
     const bool ok = guide->sample_tau(n, ut, bits) && guide->sample_dir(n, bits, ul, u, dir);
     if (timed) st.guide_ns += kGuideTimeEvery * ns_since(tg);
