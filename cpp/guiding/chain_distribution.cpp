@@ -70,21 +70,18 @@ void nearest_distances(const Vec3* d, size_t m, float* best) {
 // Small and large bins are paired in index order, so the table is a
 // function of the weights alone. Zero-weight lobes get q = 0 and are never
 // drawn unless every lobe has zero weight (then dist is empty and so is this).
-static void build_alias(ChainDistribution::Lobes& L) {
-  const size_t m = L.mu.size();
-  L.entries.assign(m, ChainDistribution::LobeEntry{});
-  if (m == 0 || L.dist.empty()) { L.entries.clear(); return; }
+static void build_alias(ChainDistribution::Lobes& L, const std::vector<Vec3>& mu,
+                        const std::vector<float>& kappa) {
+  const size_t m = mu.size();
+  L.entries.clear();
+  if (m == 0 || L.dist.empty()) return;
+  L.entries.resize(m);
   std::vector<double> p(m);
   std::vector<uint32_t> small, large;
   for (size_t i = 0; i < m; ++i) {
+    L.entries[i] = {mu[i], kappa[i], 1.f, uint32_t(i)};
     p[i] = double(L.dist.pmf(i)) * double(m);
     (p[i] < 1.0 ? small : large).push_back(uint32_t(i));
-  }
-  for (size_t i = 0; i < m; ++i) {
-    L.entries[i].mu = L.mu[i];
-    L.entries[i].kappa = L.kappa[i];
-    L.entries[i].q = 1.f;
-    L.entries[i].alias = uint32_t(i);
   }
   size_t si = 0, li = 0;
   while (si < small.size() && li < large.size()) {
@@ -153,28 +150,30 @@ void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uin
   }
   // one vMF lobe per sample (Eq. 12), per (n, tau)
   lobes_.clear();
-  std::vector<Lobes> lobes(groups.size());
+  struct Scratch { std::vector<Vec3> mu; std::vector<float> kappa, weight; };
+  std::vector<Scratch> lobes(groups.size());
   for (size_t g = 0; g < groups.size(); ++g) {
     lobes[g].mu.reserve(groups[g].count);
     lobes[g].weight.reserve(groups[g].count);
   }
   for (size_t i = 0; i < acc.size(); ++i) {
-    Lobes& L = lobes[gid[i]];
-    L.mu.push_back(oct_decode(Vec2(acc[i]->dir[0], acc[i]->dir[1])));
-    L.weight.push_back(acc[i]->weight);
+    Scratch& S = lobes[gid[i]];
+    S.mu.push_back(oct_decode(Vec2(acc[i]->dir[0], acc[i]->dir[1])));
+    S.weight.push_back(acc[i]->weight);
   }
   for (size_t g = 0; g < groups.size(); ++g) {
-    Lobes& L = lobes[g];
-    const size_t m = L.mu.size();
-    L.kappa.resize(m);
-    nearest_distances(L.mu.data(), m, L.kappa.data());  // sigma_i
+    Scratch& S = lobes[g];
+    const size_t m = S.mu.size();
+    S.kappa.resize(m);
+    nearest_distances(S.mu.data(), m, S.kappa.data());  // sigma_i
     for (size_t i = 0; i < m; ++i) {
       // Eq. 12: kappa_i = sigma_i^-2 (capped; a lone sample gets a broad lobe)
-      const float sg = L.kappa[i];
-      L.kappa[i] = std::isinf(sg) ? kSingleKappa : std::min(kMaxKappa, 1.f / std::max(sg * sg, 1e-30f));
+      const float sg = S.kappa[i];
+      S.kappa[i] = std::isinf(sg) ? kSingleKappa : std::min(kMaxKappa, 1.f / std::max(sg * sg, 1e-30f));
     }
-    L.dist.build(L.weight);
-    build_alias(L);
+    Lobes L;
+    L.dist.build(S.weight);
+    build_alias(L, S.mu, S.kappa);
     lobes_.emplace(std::make_pair(int(groups[g].key >> 16) + 1, uint16_t(groups[g].key & 0xffffu)), std::move(L));
   }
 }
@@ -219,8 +218,9 @@ float ChainDistribution::pdf_dir(int n, uint16_t tau, const Vec3& dir) const {
   const Lobes* L = lobes(n, tau);
   if (!L || L->dist.empty()) return 0.f;
   double p = 0.0;
-  for (size_t i = 0; i < L->mu.size(); ++i)
-    p += double(L->dist.pmf(i)) * warp::vmf_pdf_cos(double(glm::dot(L->mu[i], dir)), double(L->kappa[i]));
+  for (size_t i = 0; i < L->entries.size(); ++i)
+    p += double(L->dist.pmf(i)) *
+         warp::vmf_pdf_cos(double(glm::dot(L->entries[i].mu, dir)), double(L->entries[i].kappa));
   return float(p);
 }
 

@@ -48,11 +48,8 @@ class ChainDistribution {
     uint32_t alias;
   };
   struct Lobes {
-    std::vector<Vec3> mu;
-    std::vector<float> kappa;
-    std::vector<float> weight;
     DiscreteDistribution dist;       // the mixture weights (pdf_dir)
-    std::vector<LobeEntry> entries;  // the sampler's view of the same lobes
+    std::vector<LobeEntry> entries;  // the lobes, with their alias-table bins (sample_dir)
   };
   const Lobes* lobes(int n, uint16_t tau) const;
 
