@@ -115,8 +115,9 @@ class ChainEstimator {
   // `depth` (path tracer's convention, camera hit = 0) under `max_depth`?
   bool owns(uint32_t depth, uint32_t max_depth, const std::string& tau) const;
   // With selective activation, ownership also depends on the configuration.
-  bool active_for(const Vec3& xD, const Vec3& xL) const {
-    return !(p_.guide && p_.guide->valid() && p_.selective) || p_.guide->query(xD, xL) != nullptr;
+  // (`st`: its leaf query counts in guide_ns, as the estimator's own.)
+  bool active_for(const Vec3& xD, const Vec3& xL, Stats* st = nullptr) const {
+    return !(p_.guide && p_.guide->valid() && p_.selective) || guide_at(xD, xL, st) != nullptr;
   }
   // Is shape `s` a surface the walk accepts as a specular vertex?
   bool is_chain_shape(int s) const { return specular_shape_[size_t(s)] != 0; }
@@ -212,7 +213,7 @@ class ChainEstimator {
   int pt_densities(const SurfaceInteraction& sep, const BSDFContext& sep_ctx, uint32_t sep_depth,
                     uint32_t max_depth, const SurfaceInteraction* verts, const std::string& tau,
                     const SurfaceInteraction& light, ManifoldChain& c, LightPoint& lp,
-                    const ChainDistribution*& guide, double& a, double& b) const;
+                    const ChainDistribution*& guide, double& a, double& b, Stats* st = nullptr) const;
   // Density per unit area of x_L on chain light k (area light): selection by power times 1/area.
   double area_light_pdf(size_t k) const;
   // K' of the MIS-aware Bernoulli process: each round, with probability beta a
