@@ -39,6 +39,8 @@ class DiscreteDistribution {
   bool empty() const { return !(sum_ > 0.0); }
   double sum() const { return sum_; }
   float pmf(size_t i) const { return i < pmf_.size() ? pmf_[i] : 0.f; }
+  // The normalised CDF at the upper end of bin i (what sample() searches).
+  double cdf_upper(size_t i) const { return i + 1 < cdf_.size() ? cdf_[i + 1] : 1.0; }
 
   // Returns index; `u` is rescaled to a fresh uniform number in [0,1).
   // The inverse CDF by binary search; with a guide table (Chen & Asau's

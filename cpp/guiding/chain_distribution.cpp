@@ -70,24 +70,21 @@ void nearest_distances(const Vec3* d, size_t m, float* best) {
 // Small and large bins are paired in index order, so the table is a
 // function of the weights alone. Zero-weight lobes get q = 0 and are never
 // drawn unless every lobe has zero weight (then dist is empty and so is this).
-static void build_alias(ChainDistribution::Lobes& L, const std::vector<Vec3>& mu,
-                        const std::vector<float>& kappa) {
+static void build_alias(const DiscreteDistribution& dist, const std::vector<Vec3>& mu,
+                        const std::vector<float>& kappa, ChainDistribution::LobeEntry* out) {
   const size_t m = mu.size();
-  L.entries.clear();
-  if (m == 0 || L.dist.empty()) return;
-  L.entries.resize(m);
   std::vector<double> p(m);
   std::vector<uint32_t> small, large;
   for (size_t i = 0; i < m; ++i) {
-    L.entries[i] = {mu[i], kappa[i], 1.f, uint32_t(i)};
-    p[i] = double(L.dist.pmf(i)) * double(m);
+    out[i] = {mu[i], kappa[i], 1.f, uint32_t(i)};
+    p[i] = double(dist.pmf(i)) * double(m);
     (p[i] < 1.0 ? small : large).push_back(uint32_t(i));
   }
   size_t si = 0, li = 0;
   while (si < small.size() && li < large.size()) {
     const uint32_t s = small[si++], l = large[li];
-    L.entries[s].q = float(p[s]);
-    L.entries[s].alias = l;
+    out[s].q = float(p[s]);
+    out[s].alias = l;
     p[l] -= 1.0 - p[s];
     if (p[l] < 1.0) {  // the large one is small now
       ++li;
@@ -129,27 +126,40 @@ void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uin
     add(base[idx[i]]);
   }
   n_dist_.build(wn);
+  n_mass_[0] = 0.0;
+  for (int k = 1; k <= kMaxN; ++k) {
+    n_pmf_[size_t(k - 1)] = n_dist_.pmf(size_t(k - 1));
+    n_mass_[size_t(k)] = n_mass_[size_t(k - 1)] + double(n_pmf_[size_t(k - 1)]);
+  }
   // groups in (n, tau) order
   thread_local std::vector<uint32_t> rank;
   rank.resize(groups.size());
   for (size_t g = 0; g < groups.size(); ++g) rank[g] = uint32_t(g);
   std::sort(rank.begin(), rank.end(), [&](uint32_t x, uint32_t y) { return groups[x].key < groups[y].key; });
-  tau_keys_.assign(kMaxN, {});
-  tau_dist_.assign(kMaxN, DiscreteDistribution());
+  // P_e(tau | n) per n (Eq. 11), through DiscreteDistribution so that the
+  // table holds its normalised cdf and pmf bit for bit.
+  types_.clear();
+  types_.reserve(rank.size());
+  type_begin_.fill(0);
   {
     std::vector<float> w;
+    DiscreteDistribution d;
+    uint32_t n_done = 0;  // lengths below this have their begin set
     for (size_t r = 0; r < rank.size();) {
-      const uint32_t n = groups[rank[r]].key >> 16;
+      const uint32_t n = groups[rank[r]].key >> 16;  // n - 1
+      for (; n_done <= n; ++n_done) type_begin_[n_done] = uint32_t(types_.size());
       w.clear();
-      for (; r < rank.size() && (groups[rank[r]].key >> 16) == n; ++r) {
-        tau_keys_[n].push_back(uint16_t(groups[rank[r]].key & 0xffffu));
-        w.push_back(groups[rank[r]].weight);
-      }
-      tau_dist_[n].build(w);
+      const size_t r0 = r;
+      for (; r < rank.size() && (groups[rank[r]].key >> 16) == n; ++r) w.push_back(groups[rank[r]].weight);
+      d.build(w);
+      if (d.empty()) continue;  // (weights are > 0: not reached) no draw at this n
+      for (size_t i = 0; i < w.size(); ++i)
+        types_.push_back(Type{d.cdf_upper(i), d.pmf(i), uint16_t(n + 1),
+                              uint16_t(groups[rank[r0 + i]].key & 0xffffu), 0u, 0u});
     }
+    for (; n_done <= uint32_t(kMaxN); ++n_done) type_begin_[n_done] = uint32_t(types_.size());
   }
   // one vMF lobe per sample (Eq. 12), per (n, tau)
-  lobes_.clear();
   struct Scratch { std::vector<Vec3> mu; std::vector<float> kappa, weight; };
   std::vector<Scratch> lobes(groups.size());
   for (size_t g = 0; g < groups.size(); ++g) {
@@ -161,7 +171,13 @@ void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uin
     S.mu.push_back(oct_decode(Vec2(acc[i]->dir[0], acc[i]->dir[1])));
     S.weight.push_back(acc[i]->weight);
   }
-  for (size_t g = 0; g < groups.size(); ++g) {
+  lobes_.clear();
+  lobe_pmf_.clear();
+  lobes_.reserve(acc.size());
+  lobe_pmf_.reserve(acc.size());
+  for (Type& t : types_) {
+    size_t g = 0;
+    while (groups[g].key != (uint32_t(t.n - 1) << 16 | t.tau)) ++g;
     Scratch& S = lobes[g];
     const size_t m = S.mu.size();
     S.kappa.resize(m);
@@ -171,56 +187,77 @@ void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uin
       const float sg = S.kappa[i];
       S.kappa[i] = std::isinf(sg) ? kSingleKappa : std::min(kMaxKappa, 1.f / std::max(sg * sg, 1e-30f));
     }
-    Lobes L;
-    L.dist.build(S.weight);
-    build_alias(L, S.mu, S.kappa);
-    lobes_.emplace(std::make_pair(int(groups[g].key >> 16) + 1, uint16_t(groups[g].key & 0xffffu)), std::move(L));
+    DiscreteDistribution dist(S.weight);
+    t.first = uint32_t(lobes_.size());
+    if (m == 0 || dist.empty()) continue;  // (not reached: weights are > 0) count 0, never drawn
+    t.count = uint32_t(m);
+    lobes_.resize(lobes_.size() + m);
+    build_alias(dist, S.mu, S.kappa, lobes_.data() + t.first);
+    for (size_t i = 0; i < m; ++i) lobe_pmf_.push_back(dist.pmf(i));
   }
 }
 
 int ChainDistribution::sample_n(float u) const { return int(n_dist_.sample(u)) + 1; }
-float ChainDistribution::pmf_n(int n) const { return n < 1 || n > kMaxN ? 0.f : n_dist_.pmf(size_t(n - 1)); }
+
+int ChainDistribution::sample_type(int n, float u) const {
+  if (n < 1 || n > kMaxN) return -1;
+  const uint32_t b = type_begin_[size_t(n - 1)], e = type_begin_[size_t(n)];
+  if (b == e) return -1;
+  // DiscreteDistribution::sample's choice: the first bin whose cdf exceeds u,
+  // then past bins of zero probability
+  const double x = u;
+  uint32_t i = b;
+  while (i + 1 < e && !(x < types_[i].cdf)) ++i;
+  while (types_[i].pmf == 0.f && i + 1 < e) ++i;
+  return int(i);
+}
 
 bool ChainDistribution::sample_tau(int n, float u, uint16_t& tau) const {
-  if (n < 1 || n > kMaxN || tau_dist_[size_t(n - 1)].empty()) return false;
-  tau = tau_keys_[size_t(n - 1)][tau_dist_[size_t(n - 1)].sample(u)];
+  const int t = sample_type(n, u);
+  if (t < 0) return false;
+  tau = types_[size_t(t)].tau;
   return true;
 }
 
+int ChainDistribution::find_type(int n, uint16_t tau) const {
+  if (n < 1 || n > kMaxN) return -1;
+  for (uint32_t i = type_begin_[size_t(n - 1)]; i < type_begin_[size_t(n)]; ++i)
+    if (types_[i].tau == tau) return int(i);
+  return -1;
+}
+
 float ChainDistribution::pmf_tau(int n, uint16_t tau) const {
-  if (n < 1 || n > kMaxN) return 0.f;
-  const auto& k = tau_keys_[size_t(n - 1)];
-  for (size_t i = 0; i < k.size(); ++i)
-    if (k[i] == tau) return tau_dist_[size_t(n - 1)].pmf(i);
-  return 0.f;
+  const int t = find_type(n, tau);
+  return t < 0 ? 0.f : types_[size_t(t)].pmf;
 }
 
-const ChainDistribution::Lobes* ChainDistribution::lobes(int n, uint16_t tau) const {
-  auto it = lobes_.find({n, tau});
-  return it == lobes_.end() ? nullptr : &it->second;
-}
-
-bool ChainDistribution::sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, Vec3& dir) const {
-  const Lobes* L = lobes(n, tau);
-  if (!L || L->entries.empty()) return false;
+bool ChainDistribution::sample_dir_of(int t, double u_lobe, const Vec2& u, Vec3& dir) const {
+  const Type& ty = types_[size_t(t)];
+  if (ty.count == 0) return false;
   // the alias table's bin from u_lobe, and the fraction within it for q
-  const size_t m = L->entries.size();
+  const LobeEntry* L = lobes_.data() + ty.first;
+  const size_t m = ty.count;
   const double x = u_lobe * double(m);  // a double: the fraction keeps its bits for large m
   const size_t b = std::min(size_t(x), m - 1);
-  const LobeEntry* e = &L->entries[b];
-  if (!(x - double(b) < double(e->q))) e = &L->entries[e->alias];
+  const LobeEntry* e = &L[b];
+  if (!(x - double(b) < double(e->q))) e = &L[e->alias];
   const Vec3 local = warp::square_to_vmf(u, e->kappa);
   dir = Frame(e->mu).to_world(local);
   return true;
 }
 
+bool ChainDistribution::sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, Vec3& dir) const {
+  const int t = find_type(n, tau);
+  return t >= 0 && sample_dir_of(t, u_lobe, u, dir);
+}
+
 float ChainDistribution::pdf_dir(int n, uint16_t tau, const Vec3& dir) const {
-  const Lobes* L = lobes(n, tau);
-  if (!L || L->dist.empty()) return 0.f;
+  const int t = find_type(n, tau);
+  if (t < 0) return 0.f;
+  const Type& ty = types_[size_t(t)];
   double p = 0.0;
-  for (size_t i = 0; i < L->entries.size(); ++i)
-    p += double(L->dist.pmf(i)) *
-         warp::vmf_pdf_cos(double(glm::dot(L->entries[i].mu, dir)), double(L->entries[i].kappa));
+  for (uint32_t i = ty.first; i < ty.first + ty.count; ++i)
+    p += double(lobe_pmf_[i]) * warp::vmf_pdf_cos(double(glm::dot(lobes_[i].mu, dir)), double(lobes_[i].kappa));
   return float(p);
 }
 

@@ -5,7 +5,8 @@
 // direction of the same (n, tau) (a particle footprint, Hey & Purgathofer 2002).
 #pragma once
 
-#include <map>
+#include <algorithm>
+#include <array>
 #include <vector>
 
 #include "core/distribution.h"
@@ -28,13 +29,24 @@ class ChainDistribution {
   bool empty() const { return n_dist_.empty(); }
 
   int sample_n(float u) const;
-  float pmf_n(int n) const;
+  // P_e(n), read from a copy kept in the object (no second cache line to
+  // fetch: the estimator reads it for every estimate, design-notes "Queries").
+  float pmf_n(int n) const { return n < 1 || n > kMaxN ? 0.f : n_pmf_[size_t(n - 1)]; }
+  // sum_{k=1..nmax} P_e(k), summed in double in the order k = 1, 2, ... (as a
+  // loop over pmf_n would: the same bits).
+  double mass_n(int nmax) const { return n_mass_[size_t(std::clamp(nmax, 0, kMaxN))]; }
   // Type for a given n: returns false when there is no sample of length n.
   bool sample_tau(int n, float u, uint16_t& tau) const;
   float pmf_tau(int n, uint16_t tau) const;
   // Direction for (n, tau); density is per solid angle.
   bool sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, Vec3& dir) const;
   float pdf_dir(int n, uint16_t tau, const Vec3& dir) const;
+  // The same draws by the index of a type (n, tau) in the leaf's table, which
+  // the estimator uses: sample_type gives sample_tau's choice (-1 for none),
+  // sample_dir_of sample_dir's direction, without looking the type up again.
+  int sample_type(int n, float u) const;
+  uint16_t type_tau(int t) const { return types_[size_t(t)].tau; }
+  bool sample_dir_of(int t, double u_lobe, const Vec2& u, Vec3& dir) const;
 
   // What sample_dir reads of lobe i, in one 24-byte record: its vMF and its
   // bin of an alias table over the lobe weights (Walker 1977, Vose 1991):
@@ -47,17 +59,29 @@ class ChainDistribution {
     float q;
     uint32_t alias;
   };
-  struct Lobes {
-    DiscreteDistribution dist;       // the mixture weights (pdf_dir)
-    std::vector<LobeEntry> entries;  // the lobes, with their alias-table bins (sample_dir)
-  };
-  const Lobes* lobes(int n, uint16_t tau) const;
 
  private:
+  // One type (n, tau) of the leaf. The types sit in (n, tau) order, those of
+  // length n in [type_begin_[n - 1], type_begin_[n]); a draw of tau scans
+  // them by cdf (as DiscreteDistribution::sample does, the same index), then
+  // reads the type's alias records in lobes_: two arrays for the whole draw,
+  // where per-n vectors and a map of (n, tau) took up to seven dependent
+  // loads (design-notes, "Queries").
+  struct Type {
+    double cdf;        // P_e(tau' <= tau | n): the upper end of its bin
+    float pmf;         // P_e(tau | n) (Eq. 11)
+    uint16_t n, tau;
+    uint32_t first, count;  // its lobes: lobes_[first, first + count)
+  };
+  int find_type(int n, uint16_t tau) const;
+
   DiscreteDistribution n_dist_;                    // index n - 1
-  std::vector<std::vector<uint16_t>> tau_keys_;    // per n
-  std::vector<DiscreteDistribution> tau_dist_;     // per n
-  std::map<std::pair<int, uint16_t>, Lobes> lobes_;
+  std::array<float, kMaxN> n_pmf_{};               // its pmf
+  std::array<double, kMaxN + 1> n_mass_{};         // its running sums from n = 1 (mass_n)
+  std::array<uint32_t, kMaxN + 1> type_begin_{};
+  std::vector<Type> types_;
+  std::vector<LobeEntry> lobes_;                   // every type's lobes with their alias bins
+  std::vector<float> lobe_pmf_;                    // their mixture weights within the type (pdf_dir)
 };
 
 }  // namespace mpg

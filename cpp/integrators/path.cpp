@@ -56,13 +56,14 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
     if (shape.emitter >= 0 && show) {
       const Color Le = scene.emitted(si);
       // (rate 0: this pixel's chain light is the path tracer's alone, below)
+      LeafQuery leaf;  // (active_for's lookup, which pt_weight reuses)
       if (chains_ && chain_ok && !tau.empty() && st.pixel_chain_rate != 0.f &&
-          chains_->owns(sep_depth, max_depth, tau) && chains_->active_for(sep_si.p, si.p, &st)) {
+          chains_->owns(sep_depth, max_depth, tau) && chains_->active_for(sep_si.p, si.p, &st, &leaf)) {
         // A path the chain estimator also produces: this side's share of it
         // (0 when the estimator takes it whole; design.md "No double counting").
         if (!is_black(Le)) {
           const float w = chains_->pt_weight(sep_si, sep_ctx, sep_depth, max_depth, chain_si.data(), tau, si,
-                                             rng, st, beta * Le);
+                                             rng, st, beta * Le, &leaf);
           st.sample_alt_delta += beta * Le * (1.f - w);  // the path tracer alone keeps it whole
           st.sample_owned_hit = true;  // (w can round to 1 where the path tracer's density dominates)
           if (w > 0.f) {

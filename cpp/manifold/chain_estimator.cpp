@@ -203,14 +203,15 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     st.guided_trials++;
     const bool timed = time_guide_call();
     const auto tg = timed ? Clock::now() : Clock::time_point{};
-    uint16_t bits = 0;
     Vec3 dir;
     const float ut = rng.next_float();
     const double ul = rng.next_double();  // the lobe: alias bin and the fraction within it
     const Vec2 u(rng.next_float(), rng.next_float());
-    const bool ok = guide->sample_tau(n, ut, bits) && guide->sample_dir(n, bits, ul, u, dir);
+    const int type = guide->sample_type(n, ut);
+    const bool ok = type >= 0 && guide->sample_dir_of(type, ul, u, dir);
     if (timed) add_guide_time(st, tg);
     if (!ok) return false;
+    const uint16_t bits = guide->type_tau(type);
     tau.assign(size_t(n), 'T');
     for (int i = 0; i < n; ++i)
       if (bits & (1u << i)) tau[size_t(i)] = 'R';
@@ -399,10 +400,7 @@ const ChainDistribution* ChainEstimator::guide_at(const Vec3& xD, const Vec3& xL
 }
 
 double ChainEstimator::pn_at(const ChainDistribution* guide, int n, int nmax) const {
-  double mass = 0.0;
-  if (guide)
-    for (int k = 1; k <= nmax; ++k) mass += guide->pmf_n(k);
-  return pmf_n_mix(n, nmax, guide, mass);
+  return pmf_n_mix(n, nmax, guide, guide ? guide->mass_n(nmax) : 0.0);
 }
 
 double ChainEstimator::pt_letters_pdf(const ManifoldChain& c, const std::string& tau) const {
@@ -526,7 +524,7 @@ int ChainEstimator::pt_densities(const SurfaceInteraction& sep, const BSDFContex
                                  uint32_t sep_depth, uint32_t max_depth, const SurfaceInteraction* verts,
                                  const std::string& tau, const SurfaceInteraction& light,
                                  ManifoldChain& c, LightPoint& lp, const ChainDistribution*& guide,
-                                 double& a, double& b, Stats* st) const {
+                                 double& a, double& b, Stats* st, const LeafQuery* known) const {
   if (!p_.mis || !light.valid) return 0;
   const int emitter = scene_.shapes[size_t(light.shape)].emitter;
   if (emitter < 0) return 0;
@@ -550,7 +548,7 @@ int ChainEstimator::pt_densities(const SurfaceInteraction& sep, const BSDFContex
   lp.pdf = area_light_pdf(size_t(k));
   lp.point = false;
   lp.emitter = emitter;
-  guide = guide_at(sep.p, light.p, st);
+  guide = known && known->done ? known->leaf : guide_at(sep.p, light.p, st);
   a = lp.pdf * pn_at(guide, n, max_len(sep_depth, max_depth));
   if (!(a > 0.0)) return 1;  // P(n) = 0: the estimator never draws this length
   // The traced path leaves each vertex from an offset origin, so it misses the
@@ -569,13 +567,13 @@ int ChainEstimator::pt_densities(const SurfaceInteraction& sep, const BSDFContex
 float ChainEstimator::pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx,
                                 uint32_t sep_depth, uint32_t max_depth, const SurfaceInteraction* verts,
                                 const std::string& tau, const SurfaceInteraction& light, PCG32& rng,
-                                Stats& st, const Color& unit) const {
+                                Stats& st, const Color& unit, const LeafQuery* known) const {
   thread_local ManifoldChain c;
   thread_local std::vector<Vec2> offsets;
   LightPoint lp;
   const ChainDistribution* guide = nullptr;
   double a = 0.0, b = 0.0;
-  const int shared = pt_densities(sep, sep_ctx, sep_depth, max_depth, verts, tau, light, c, lp, guide, a, b, &st);
+  const int shared = pt_densities(sep, sep_ctx, sep_depth, max_depth, verts, tau, light, c, lp, guide, a, b, &st, known);
   if (shared != 2) return shared == 1 ? 1.f : 0.f;
   if (!std::isfinite(b)) return 1.f;  // the estimator's share a P / (a P + b) vanishes
   // b / (a P + b) = b / (a + b) * E[K'] with the estimator's own trials
@@ -678,9 +676,7 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
       st.chain_inactive++;
       break;
     }
-    double mass = 0.0;
-    if (guide)
-      for (int k = 1; k <= nmax; ++k) mass += guide->pmf_n(k);
+    const double mass = guide ? guide->mass_n(nmax) : 0.0;
     int n;
     if (guide && p_.guide_n && mass > 0.0 && rng.next_float() < p_.guide_fraction) {
       // n from P_e truncated at nmax (inverse CDF over the allowed lengths)

@@ -102,6 +102,13 @@ struct ChainParams {
   float chain_rate = 1.0f;
 };
 
+// A leaf already looked up for a pair (x_D, x_L) (active_for), so that
+// pt_weight at the same pair does not descend the tree again.
+struct LeafQuery {
+  bool done = false;
+  const ChainDistribution* leaf = nullptr;
+};
+
 class ChainEstimator {
  public:
   ChainEstimator(const Scene& scene, ChainParams p);
@@ -115,9 +122,13 @@ class ChainEstimator {
   // `depth` (path tracer's convention, camera hit = 0) under `max_depth`?
   bool owns(uint32_t depth, uint32_t max_depth, const std::string& tau) const;
   // With selective activation, ownership also depends on the configuration.
-  // (`st`: its leaf query counts in guide_ns, as the estimator's own.)
-  bool active_for(const Vec3& xD, const Vec3& xL, Stats* st = nullptr) const {
-    return !(p_.guide && p_.guide->valid() && p_.selective) || guide_at(xD, xL, st) != nullptr;
+  // (`st`: its leaf query counts in guide_ns, as the estimator's own. `q`:
+  // the leaf it looked up, if it did, for pt_weight at the same x_D, x_L.)
+  bool active_for(const Vec3& xD, const Vec3& xL, Stats* st = nullptr, LeafQuery* q = nullptr) const {
+    if (!(p_.guide && p_.guide->valid() && p_.selective)) return true;
+    const ChainDistribution* leaf = guide_at(xD, xL, st);
+    if (q) *q = LeafQuery{true, leaf};
+    return leaf != nullptr;
   }
   // Is shape `s` a surface the walk accepts as a specular vertex?
   bool is_chain_shape(int s) const { return specular_shape_[size_t(s)] != 0; }
@@ -156,7 +167,7 @@ class ChainEstimator {
   float pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx, uint32_t sep_depth,
                   uint32_t max_depth, const SurfaceInteraction* verts, const std::string& tau,
                   const SurfaceInteraction& light, PCG32& rng, Stats& st,
-                  const Color& unit = Color(0.f)) const;
+                  const Color& unit = Color(0.f), const LeafQuery* known = nullptr) const;
 
   // Test entry point: the densities a (estimator, without P) and b (path
   // tracer) of one path as each side computes them. The path tracer's path
@@ -213,7 +224,8 @@ class ChainEstimator {
   int pt_densities(const SurfaceInteraction& sep, const BSDFContext& sep_ctx, uint32_t sep_depth,
                     uint32_t max_depth, const SurfaceInteraction* verts, const std::string& tau,
                     const SurfaceInteraction& light, ManifoldChain& c, LightPoint& lp,
-                    const ChainDistribution*& guide, double& a, double& b, Stats* st = nullptr) const;
+                    const ChainDistribution*& guide, double& a, double& b, Stats* st = nullptr,
+                    const LeafQuery* known = nullptr) const;
   // Density per unit area of x_L on chain light k (area light): selection by power times 1/area.
   double area_light_pdf(size_t k) const;
   // K' of the MIS-aware Bernoulli process: each round, with probability beta a
