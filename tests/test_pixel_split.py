@@ -123,6 +123,39 @@ def test_learned_split_is_eq4():
     assert np.isfinite(kn).all() and kn.min() >= 1
 
 
+def test_learned_split_under_a_cost_cap():
+    """pixel_split_max_cost: above the cap the map is clamp(rint(s sqrt(V
+    mean(kC) / (C mean(V/k)))), 1, 16) with the uncapped fixed point's means
+    and the largest s that keeps mean(kC) / mean(C) at or below the cap
+    (checked: within the cap, and s a little larger breaks it); the pixels
+    keep their order (more variance per cost, k no smaller); a cap above the
+    uncapped cost changes nothing."""
+    rng = np.random.default_rng(2)
+    var_t = rng.uniform(0.0, 1.0, (16, 16))
+    var_t[:3, :3] = rng.uniform(50.0, 400.0, (3, 3))
+    rays = rng.uniform(2.0, 8.0, (16, 16))
+    acc = _acc(var_t, rays)
+    q = np.ones((16, 16), np.float32)
+    k0, info0 = learn_pixel_split(acc, q, np.ones((16, 16)), radius=0, objective="mse")
+    cost0 = info0["pixel_split_cost"]
+    assert cost0 > 1.1
+    same, _ = learn_pixel_split(acc, q, np.ones((16, 16)), radius=0, objective="mse", max_cost=cost0 + 0.01)
+    np.testing.assert_array_equal(same, k0)
+    cap = 1.0 + 0.5 * (cost0 - 1.0)
+    k, info = learn_pixel_split(acc, q, np.ones((16, 16)), radius=0, objective="mse", max_cost=cap)
+    c = rays
+    assert info["pixel_split_cost"] <= cap + 1e-12 and info["pixel_split_capped"] == pytest.approx(cost0)
+    assert (k > 1).any() and np.all(k <= k0)
+    base = np.sqrt(var_t * float(np.mean(k0 * c)) / (c * float(np.mean(var_t / k0))))
+    s = info["pixel_split_scale"]
+    assert 0.0 < s < 1.0
+    np.testing.assert_array_equal(k, np.clip(np.rint(s * base), 1, 16))
+    bigger = np.clip(np.rint(1.02 * s * base), 1, 16)
+    assert float(np.mean(bigger * c) / np.mean(c)) > cap or np.array_equal(bigger, k)
+    order = np.argsort((var_t / c).ravel())
+    assert np.all(np.diff(k.ravel()[order]) >= 0)
+
+
 def test_learned_split_models_branched_delta_paths():
     """With branched delta paths (mpg's delta_branch > 0) a pixel whose
     variance is the light seen in the glass and whose delta split is 2 keeps
@@ -172,3 +205,10 @@ def test_mpg_pixel_split_options(sphere, sphere32_path_ref):
     kh = ho.pixel_split_map
     assert kh is not None and (kh > 1).any() and np.all(ho.chain_rate_map[kh > 1] == 0)
     check_uniform_split(sphere, sphere32_path_ref, "pixel_split", 3, 256, "pixel_split_samples", REGIONS)
+    capped = mpg.render(sphere, {"type": "mpg", "pixel_split": "mse", "pixel_split_max_cost": 1.05},
+                        spp=64, seed=2, progress=False)
+    assert capped.stats["pixel_split_cost"] <= 1.05 + 1e-9
+    for bad in (0.5, "x", float("nan")):
+        with pytest.raises(mpg.RenderError, match="pixel_split_max_cost"):
+            mpg.render(sphere, {"type": "mpg", "pixel_split": "mse", "pixel_split_max_cost": bad},
+                       spp=4, seed=2, progress=False)

@@ -382,7 +382,8 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
                       objective: str = "mse", k_max: int = PIXEL_SPLIT_MAX,
                       iterations: int = 30,
                       where: np.ndarray | None = None,
-                      branched: bool = False) -> tuple[np.ndarray, dict]:
+                      branched: bool = False,
+                      max_cost: float | None = None) -> tuple[np.ndarray, dict]:
     """Per-pixel count k of camera samples averaged in each sample of the pixel
     (design-notes "Splitting the pixels").
 
@@ -406,7 +407,15 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
     and a split sample leaves its own delta part out): where kd > 1 the light
     seen through delta scattering only keeps BRANCH_RESIDUAL of its variance,
     not 1 / kd, and each extra path costs TREE_COST o, as in
-    learn_delta_split."""
+    learn_delta_split.
+
+    max_cost: a cap on the predicted cost of a sample, mean(k C) / mean(C).
+    Every extra sample of a split pixel is taken from all the others, whose
+    spp falls by that factor; where the training saw no variance (a rare
+    firefly) the model does not count that loss. Above the cap, k_p =
+    clamp(rint(s sqrt(...)), 1, k_max) with the fixed point's image means
+    and the largest s in (0, 1] (bisection) that keeps the cost at or below
+    it."""
     shape = acc.delta_rays.shape
     info: dict = {}
     if acc.n < 2:
@@ -440,6 +449,26 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
         if np.array_equal(k_new, k):
             break
         k = k_new
+    cost = float(np.mean(k * c) / np.mean(c))
+    if max_cost is not None and cost > max_cost:
+        c_mean, v_mean = float(np.mean(k * c)), float(np.mean(wv / k))
+        base = np.sqrt(wv * c_mean / (c * v_mean))
+        base = np.where(np.isfinite(base), base, 0.0)
+        if where is not None:
+            base = np.where(where, base, 0.0)
+
+        def at(scale: float) -> np.ndarray:
+            return np.clip(np.rint(scale * base), 1.0, float(k_max))
+
+        lo, hi = 0.0, 1.0   # cost(at(lo)) <= max_cost (at(0) is all ones), cost(at(hi)) > max_cost
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            if float(np.mean(at(mid) * c) / np.mean(c)) <= max_cost:
+                lo = mid
+            else:
+                hi = mid
+        k = at(lo)
+        info.update(pixel_split_capped=cost, pixel_split_scale=lo)
     split = k > 1.0
     info.update(pixel_split_fraction=float(np.mean(split)),
                 pixel_split_mean=float(np.mean(k[split])) if np.any(split) else 1.0,

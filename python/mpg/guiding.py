@@ -164,6 +164,15 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # that error: each sample of a pixel the mean of k camera samples), or k
     # everywhere (mpg.chain_rates.learn_pixel_split)
     psplit = _split_setting("pixel_split", params.pop("pixel_split", "off"), ("off", "mse", "relmse", "handoff"))
+    # ... with its predicted cost per sample capped (None: no cap)
+    psplit_cap = params.pop("pixel_split_max_cost", None)
+    if psplit_cap is not None:
+        try:
+            psplit_cap = float(psplit_cap)
+        except (TypeError, ValueError):
+            raise RenderError(f"pixel_split_max_cost must be a number, got {psplit_cap!r}") from None
+        if not psplit_cap >= 1.0:
+            raise RenderError(f"pixel_split_max_cost must be >= 1, got {psplit_cap}")
     if psplit in ("mse", "relmse", "handoff") and not auto:
         warnings.append(f"pixel_split={psplit} needs learned rates (chain_rate=auto); no split")
     if split == "auto" and split_given and not auto:
@@ -383,7 +392,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         smap = learned(*learn_pixel_split(costs, rates(), kmap if kmap is not None else uniform(1),
                                           objective="mse" if psplit == "handoff" else psplit,
                                           where=(rates() <= 0.0) if psplit == "handoff" else None,
-                                          branched=params["delta_branch"] > 0))
+                                          branched=params["delta_branch"] > 0,
+                                          max_cost=psplit_cap))
     elif isinstance(psplit, int) and psplit > 1:
         smap = uniform(psplit)
         rate_info.update(pixel_split_fraction=1.0, pixel_split_mean=float(psplit))
