@@ -409,6 +409,10 @@ import mpg  # noqa: E402
     ("sphere_glass.xml", {"guide_structure": "knn", "knn_k": 200}),
     ("sphere_glass.xml", {"guide_fraction": 0.8}),   # the default is the paper's 0.5
     ("slab_glass.xml", {"guide_fraction": 0.95, "training_guide_fraction": 0.5}),
+    # chains of types their leaf never saw are the path tracer's
+    ("sphere_glass.xml", {"known_types": True}),
+    ("slab_glass.xml", {"known_types": True}),
+    ("sphere_glass.xml", {"known_types": False}),
 ])
 def test_mpg_is_unbiased_against_path_tracing(scene, params, scenes_dir):
     """Guided (after training) renders agree with the path tracer: |z| < 5 on
@@ -435,6 +439,10 @@ def test_mpg_is_unbiased_against_path_tracing(scene, params, scenes_dir):
     assert st["chain_rate_mode"] == ("fixed" if "chain_rate" in params else "per-pixel")
     if "chain_rate" in params:   # one rate: the one asked for is reported
         assert st["chain_rate_mean"] == pytest.approx(params["chain_rate"])
+    if params.get("known_types") is False:
+        assert st["chain_unknown_type"] == 0
+    elif params.get("known_types"):   # first trials of unseen types found and handed over
+        assert st["chain_unknown_type"] > 0
     regions = [np.s_[:, :]] + [np.s_[i:i + 8, j:j + 8] for i in (0, 8, 16) for j in (0, 8, 16)]
     assert image_zmax(img, ref, regions) < 5
 

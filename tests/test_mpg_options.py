@@ -113,7 +113,8 @@ def test_mpg_options_are_unbiased_against_path_tracing(params, scenes_dir):
     assert image_zmax(img, ref, regions) < 5
 
 
-@pytest.mark.parametrize("params", [{"init": "photon"}, {"init": "photon", "training_fraction": 0.0}])
+@pytest.mark.parametrize("params", [{"init": "photon"}, {"init": "photon", "training_fraction": 0.0},
+                                    {"init": "photon", "known_types": True}])
 def test_mpg_photon_init_matches_the_mirror_closed_form(params):
     """Point light seen through a mirror (a path tracer cannot render it):
     with the photon-built guide (and with it alone, no training) the image
@@ -127,7 +128,8 @@ def test_mpg_photon_init_matches_the_mirror_closed_form(params):
     assert img.stats["chain_contributions"] > 0
 
 
-@pytest.mark.parametrize("key,value", [("product", "maybe"), ("selective", "2x"), ("photons", "many"),
+@pytest.mark.parametrize("key,value", [("product", "maybe"), ("selective", "2x"), ("known_types", "2x"),
+                                       ("photons", "many"),
                                        ("init", "camera"), ("photons", 0),
                                        ("training_guide_fraction", 1.0),
                                        ("training_guide_fraction", "half")])

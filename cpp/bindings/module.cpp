@@ -231,6 +231,7 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
         cp.guide = py::cast<std::shared_ptr<GuidingState>>(p["guide"]);
       cp.guide_fraction = get<float>(p, "guide_fraction", cp.guide_fraction);
       cp.selective = get<bool>(p, "selective", cp.selective);
+      cp.known_types = get<bool>(p, "known_types", cp.known_types);
       cp.record = get<bool>(p, "record", false);
       cp.guide_n = get<bool>(p, "guide_n", true);
       cp.guide_tau = get<bool>(p, "guide_tau", true);

@@ -45,6 +45,8 @@ class ChainDistribution {
   // the estimator uses: sample_type gives sample_tau's choice (-1 for none),
   // sample_dir_of sample_dir's direction, without looking the type up again.
   int sample_type(int n, float u) const;
+  // Does the leaf hold a sample of type (n, tau)?
+  bool has_type(int n, uint16_t tau) const { return find_type(n, tau) >= 0; }
   uint16_t type_tau(int t) const { return types_[size_t(t)].tau; }
   bool sample_dir_of(int t, double u_lobe, const Vec2& u, Vec3& dir) const;
 

@@ -58,7 +58,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       // (rate 0: this pixel's chain light is the path tracer's alone, below)
       LeafQuery leaf;  // (active_for's lookup, which pt_weight reuses)
       if (chains_ && chain_ok && !tau.empty() && st.pixel_chain_rate != 0.f &&
-          chains_->owns(sep_depth, max_depth, tau) && chains_->active_for(sep_si.p, si.p, &st, &leaf)) {
+          chains_->owns(sep_depth, max_depth, tau) && chains_->active_for(sep_si.p, si.p, tau, &st, &leaf)) {
         // A path the chain estimator also produces: this side's share of it
         // (0 when the estimator takes it whole; design.md "No double counting").
         if (!is_black(Le)) {

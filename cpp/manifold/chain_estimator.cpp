@@ -701,6 +701,12 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     if (!trial(xD, nD, lp, n, offsets, seed_guide, rng, chain, tau, st, p_.count_limits ? &first : nullptr))
       break;
     st.chain_converged++;
+    // A type the leaf never saw, to an area light: the path tracer's whole
+    // (known_types; active_for on its side gives the same answer).
+    if (p_.known_types && guide && !lp.point && !guide->has_type(n, tau_bits(tau.data(), n))) {
+      st.chain_unknown_type++;
+      break;
+    }
     const ManifoldVertex& last = chain.v.back();
     // One-sided area light; visibility of the last segment (the others are first hits).
     if (!lp.point && glm::dot(last.p - lp.p, lp.n) <= 0.0) break;

@@ -89,6 +89,10 @@ struct ChainParams {
   std::shared_ptr<const GuidingState> guide;
   float guide_fraction = 0.5f;     // alpha of Eq. 13
   bool selective = false;          // chains only where the leaf holds unfiltered samples (off: the MPG paper's comparisons)
+  // Where a leaf holds samples, the estimator owns a chain to an area light only
+  // when the leaf holds a sample of its type (n, tau); the path tracer owns the
+  // others whole (design-notes, "Chain types the training never saw").
+  bool known_types = false;
   bool record = false;             // store SubpathSamples in Stats::subpaths
   bool count_limits = false;       // Stats::limit_m2 / limit_steps (mpg's training, step_halvings=auto)
   bool product = false;            // product sampling with the separator's BSDF (MPG Eq. 14)
@@ -122,13 +126,17 @@ class ChainEstimator {
   // `depth` (path tracer's convention, camera hit = 0) under `max_depth`?
   bool owns(uint32_t depth, uint32_t max_depth, const std::string& tau) const;
   // With selective activation, ownership also depends on the configuration.
-  // (`st`: its leaf query counts in guide_ns, as the estimator's own. `q`:
-  // the leaf it looked up, if it did, for pt_weight at the same x_D, x_L.)
-  bool active_for(const Vec3& xD, const Vec3& xL, Stats* st = nullptr, LeafQuery* q = nullptr) const {
-    if (!(p_.guide && p_.guide->valid() && p_.selective)) return true;
+  // With known_types, also on the type of the chain (letters `tau`) to an
+  // area light at x_L. (`st`: its leaf query counts in guide_ns, as the
+  // estimator's own. `q`: the leaf it looked up, if it did, for pt_weight at
+  // the same x_D, x_L.)
+  bool active_for(const Vec3& xD, const Vec3& xL, const std::string& tau, Stats* st = nullptr,
+                  LeafQuery* q = nullptr) const {
+    if (!(p_.guide && p_.guide->valid() && (p_.selective || p_.known_types))) return true;
     const ChainDistribution* leaf = guide_at(xD, xL, st);
     if (q) *q = LeafQuery{true, leaf};
-    return leaf != nullptr;
+    if (!leaf) return !p_.selective;
+    return !p_.known_types || leaf->has_type(int(tau.size()), tau_bits(tau.data(), int(tau.size())));
   }
   // Is shape `s` a surface the walk accepts as a specular vertex?
   bool is_chain_shape(int s) const { return specular_shape_[size_t(s)] != 0; }

@@ -74,6 +74,7 @@ struct Stats {
   // timed and counted 8 times (chain_estimator.cpp). guide_clock_ns: the
   // clock's own share of those intervals, which to_map's guide_ns leaves out
   // (guide_ns_raw keeps it).
+  uint64_t chain_unknown_type = 0;   // first trials whose type the leaf never saw (known_types): the path tracer's
   uint64_t guide_ns = 0;
   uint64_t guide_clock_ns = 0;
   uint64_t walk_steps = 0;           // manifold-walk work: traced vertices + those of accepted iterations, all trials
@@ -113,7 +114,7 @@ struct Stats {
     chain_estimates += o.chain_estimates; chain_converged += o.chain_converged;
     chain_contributions += o.chain_contributions; bernoulli_trials += o.bernoulli_trials;
     bernoulli_capped += o.bernoulli_capped; owned_dropped += o.owned_dropped; owned_shared += o.owned_shared; chain_ns += o.chain_ns;
-    bernoulli_ns += o.bernoulli_ns; guide_ns += o.guide_ns; guide_clock_ns += o.guide_clock_ns;
+    bernoulli_ns += o.bernoulli_ns; guide_ns += o.guide_ns; guide_clock_ns += o.guide_clock_ns; chain_unknown_type += o.chain_unknown_type;
     walk_steps += o.walk_steps; walk_reprojections += o.walk_reprojections; walk_off_surface += o.walk_off_surface; chain_steps += o.chain_steps;
     for (size_t i = 0; i < walk_failures.size(); ++i) walk_failures[i] += o.walk_failures[i];
     chain_m2 += o.chain_m2;
@@ -155,7 +156,7 @@ struct Stats {
             {"walk_steps", double(walk_steps)}, {"walk_reprojections", double(walk_reprojections)}, {"walk_off_surface", double(walk_off_surface)},
             {"chain_steps", double(chain_steps)},
             {"guided_trials", double(guided_trials)}, {"trials_tau_cut", double(trials_tau_cut)},
-            {"chain_inactive", double(chain_inactive)},
+            {"chain_inactive", double(chain_inactive)}, {"chain_unknown_type", double(chain_unknown_type)},
             {"chain_skipped", double(chain_skipped)},
             {"chain_handed", double(chain_handed)},
             {"subpath_samples", double(subpaths.size())},

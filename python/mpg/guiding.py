@@ -48,6 +48,13 @@ DELTA_BRANCH = 8
 # ring (design-notes "The guided share of seed chains"; docs/results.md, ninth
 # and tenth sessions).
 GUIDE_FRACTION = 0.5
+# Render passes: chains of a type their leaf never saw go to the path tracer
+# (off: the estimator owns every type, as in MPG).
+KNOWN_TYPES = False
+# The pixel split's default (learned for MSE) and the cap on its predicted cost
+# per sample (design-notes "Splitting the pixels"; docs/results.md, eleventh session)
+PIXEL_SPLIT = "off"
+PIXEL_SPLIT_MAX_COST = None
 
 # Time of one tried chain vertex (a traced seed vertex or a line-search try's
 # reprojected one) in units of one path-tracer ray: bench/step_cost.py
@@ -163,17 +170,20 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # pixel_split: "off" (default), "mse" or "relmse" (learned with the rates for
     # that error: each sample of a pixel the mean of k camera samples), or k
     # everywhere (mpg.chain_rates.learn_pixel_split)
-    psplit = _split_setting("pixel_split", params.pop("pixel_split", "off"), ("off", "mse", "relmse", "handoff"))
-    # ... with its predicted cost per sample capped (None: no cap)
-    psplit_cap = params.pop("pixel_split_max_cost", None)
+    psplit_given = "pixel_split" in params
+    psplit = _split_setting("pixel_split", params.pop("pixel_split", PIXEL_SPLIT), ("off", "mse", "relmse", "handoff"))
+    # ... with its predicted cost per sample capped ("none": no cap)
+    psplit_cap = params.pop("pixel_split_max_cost", PIXEL_SPLIT_MAX_COST)
+    if isinstance(psplit_cap, str) and psplit_cap.strip().lower() == "none":
+        psplit_cap = None
     if psplit_cap is not None:
         try:
             psplit_cap = float(psplit_cap)
         except (TypeError, ValueError):
-            raise RenderError(f"pixel_split_max_cost must be a number, got {psplit_cap!r}") from None
+            raise RenderError(f"pixel_split_max_cost must be a number or 'none', got {psplit_cap!r}") from None
         if not psplit_cap >= 1.0:
             raise RenderError(f"pixel_split_max_cost must be >= 1, got {psplit_cap}")
-    if psplit in ("mse", "relmse", "handoff") and not auto:
+    if psplit in ("mse", "relmse", "handoff") and not auto and psplit_given:
         warnings.append(f"pixel_split={psplit} needs learned rates (chain_rate=auto); no split")
     if split == "auto" and split_given and not auto:
         warnings.append("delta_split=auto needs learned rates (chain_rate=auto); no split")
@@ -191,6 +201,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # default) the next iterations walk under the choice, which can then only
     # tighten (the counts under limit H judge the limits below it alone)
     limit_in_training = _as_bool("limit_in_training", params.pop("limit_in_training", True))
+    # known_types: in the render, a chain to an area light whose type (n, tau)
+    # its leaf never saw is the path tracer's (design-notes "Chain types the
+    # training never saw"); training passes keep every type, to find them
+    params["known_types"] = _as_bool("known_types", params.pop("known_types", KNOWN_TYPES))
     params["step_halvings"] = -1 if auto_halvings else int(halvings)
     init = str(params.pop("init", "surface"))
     n_photons = int(params.pop("photons", 200_000))
@@ -304,7 +318,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             # Training passes run at chain_rate_train under "auto", at the render's
             # rate otherwise (measured on sphere, 3 seeds x 30 s, when one rate of
             # 1/8 was the default: MSE 0.034 training at 1/8, 0.044 at 1).
-            integ = _core.make_integrator(core, "mpg", dict(params, record=True, guide=guide,
+            integ = _core.make_integrator(core, "mpg", dict(params, record=True, guide=guide, known_types=False,
                                                             count_limits=auto_halvings,
                                                             guide_fraction=train_alpha))
             job = _core.RenderJob(core, integ, k, seed, 1_000_000 + iterations, threads or 0,

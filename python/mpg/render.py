@@ -28,9 +28,9 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
                 "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff",
                 "chain_handoff_negligible",
-                "delta_split", "pixel_split", "pixel_split_max_cost", "limit_in_training"}
+                "delta_split", "pixel_split", "pixel_split_max_cost", "limit_in_training", "known_types"}
 BOOL_PARAMS = {"hide_emitters", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
-               "mis", "chain_handoff", "limit_in_training"}
+               "mis", "chain_handoff", "limit_in_training", "known_types"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
 # The SMS paper's integrators, with their parameter names, map onto `sms`.
 SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
