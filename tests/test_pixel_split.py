@@ -189,13 +189,16 @@ def test_learned_split_models_branched_delta_paths():
 
 
 def test_mpg_pixel_split_options(sphere, sphere32_path_ref):
-    """mpg learns a map with pixel_split=mse (off by default); a uniform
+    """mpg learns a map with pixel_split=mse (the default, capped); a uniform
     pixel_split=3 stays unbiased against the path tracer (|z| < 5); bad
     settings are clear errors."""
-    off = mpg.render(sphere, "mpg", spp=32, seed=2, progress=False)
+    off = mpg.render(sphere, {"type": "mpg", "pixel_split": "off"}, spp=32, seed=2, progress=False)
     assert off.pixel_split_map is None and off.stats["pixel_split"] == "off"
-    img = mpg.render(sphere, {"type": "mpg", "pixel_split": "mse"}, spp=64, seed=2, progress=False)
-    assert img.stats["pixel_split"] == "mse"
+    # the default: learned for MSE, its predicted cost capped at 1.1
+    img = mpg.render(sphere, "mpg", spp=64, seed=2, progress=False)
+    assert img.stats["pixel_split"] == "mse" and img.stats["pixel_split_cost"] <= 1.1 + 1e-9
+    uncapped = mpg.render(sphere, {"type": "mpg", "pixel_split_max_cost": "none"}, spp=64, seed=2, progress=False)
+    assert "pixel_split_capped" not in uncapped.stats
     k = img.pixel_split_map
     assert k is not None and (k > 1).any() and k.min() >= 1 and k.max() <= 16
     assert img.stats["pixel_split_samples"] > 0

@@ -49,12 +49,12 @@ DELTA_BRANCH = 8
 # and tenth sessions).
 GUIDE_FRACTION = 0.5
 # Render passes: chains of a type their leaf never saw go to the path tracer
-# (off: the estimator owns every type, as in MPG).
-KNOWN_TYPES = False
+# (on by default; off: the estimator owns every type, as in MPG).
+KNOWN_TYPES = True
 # The pixel split's default (learned for MSE) and the cap on its predicted cost
 # per sample (design-notes "Splitting the pixels"; docs/results.md, eleventh session)
-PIXEL_SPLIT = "off"
-PIXEL_SPLIT_MAX_COST = None
+PIXEL_SPLIT = "mse"
+PIXEL_SPLIT_MAX_COST = 1.1
 
 # Time of one tried chain vertex (a traced seed vertex or a line-search try's
 # reprojected one) in units of one path-tracer ray: bench/step_cost.py
@@ -167,9 +167,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # two-lobe delta vertices (design-notes "Branching the paths of the light
     # seen in the glass"); mpg's default, the baselines (path, sms*) keep 0
     params.setdefault("delta_branch", DELTA_BRANCH)
-    # pixel_split: "off" (default), "mse" or "relmse" (learned with the rates for
-    # that error: each sample of a pixel the mean of k camera samples), or k
-    # everywhere (mpg.chain_rates.learn_pixel_split)
+    # pixel_split: "mse" (PIXEL_SPLIT, the default) or "relmse" (learned with the
+    # rates for that error: each sample of a pixel the mean of k camera samples),
+    # "handoff", k everywhere, or "off" (mpg.chain_rates.learn_pixel_split)
     psplit_given = "pixel_split" in params
     psplit = _split_setting("pixel_split", params.pop("pixel_split", PIXEL_SPLIT), ("off", "mse", "relmse", "handoff"))
     # ... with its predicted cost per sample capped ("none": no cap)
