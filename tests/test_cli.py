@@ -110,6 +110,11 @@ def test_mpg_summary_and_chain_rate_map(tmp_path, scenes_dir):
              "--chain-rate-map", str(png)])
     assert r.returncode == 0, r.stderr
     assert "mpg trained" in r.stderr and "chain rates per pixel" in r.stderr
+    # a pixel split held under its cost cap says so
+    rc = run([scene, "-D", "res=16", "--integrator", "mpg", "--spp", "24", "-P", "pixel_split_max_cost=1.03",
+              "-o", str(tmp_path / "c.exr")])
+    assert rc.returncode == 0, rc.stderr
+    assert "pixels split (mse)" in rc.stderr and "capped at 1.03x" in rc.stderr
     g = np.asarray(PILImage.open(png))
     assert g.shape == (16, 16, 3) and len(np.unique(g)) > 1   # the rates differ across the image
     png2 = tmp_path / "q2.png"

@@ -160,7 +160,13 @@ def _run(args) -> int:
             if st.get("pixel_split", "off") != "off":
                 rates += (f"; pixels split ({st['pixel_split']}) in "
                           f"{100 * st.get('pixel_split_fraction', 1.0):.1f} % of the pixels "
-                          f"(mean {st.get('pixel_split_mean', 0.0):.1f} samples)")
+                          f"(mean {st.get('pixel_split_mean', 0.0):.1f} samples"
+                          + (f", cost per sample capped at {st['pixel_split_cost']:.2f}x from "
+                             f"{st['pixel_split_capped']:.2f}x" if "pixel_split_capped" in st else "")
+                          + ")")
+            if st.get("chain_unknown_type"):
+                rates += (f"; {st['chain_unknown_type']} chains of types their leaf never saw "
+                          f"left to the path tracer")
             print(f"mpg-render: mpg trained {st['training_iterations']} iterations "
                   f"({st['spp_training']} spp, {st['seconds_training']:.1f} s), "
                   f"{st['guide_leaves']} leaves; {rates}", file=sys.stderr)
