@@ -141,6 +141,8 @@ void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uin
   types_.clear();
   types_.reserve(rank.size());
   type_begin_.fill(0);
+  thread_local std::vector<uint32_t> type_group;  // the group of each type
+  type_group.clear();
   {
     std::vector<float> w;
     DiscreteDistribution d;
@@ -153,9 +155,10 @@ void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uin
       for (; r < rank.size() && (groups[rank[r]].key >> 16) == n; ++r) w.push_back(groups[rank[r]].weight);
       d.build(w);
       if (d.empty()) continue;  // (weights are > 0: not reached) no draw at this n
-      for (size_t i = 0; i < w.size(); ++i)
-        types_.push_back(Type{d.cdf_upper(i), d.pmf(i), uint16_t(n + 1),
-                              uint16_t(groups[rank[r0 + i]].key & 0xffffu), 0u, 0u});
+      for (size_t i = 0; i < w.size(); ++i) {
+        types_.push_back(Type{d.cdf_upper(i), d.pmf(i), uint16_t(groups[rank[r0 + i]].key & 0xffffu), 0u, 0u});
+        type_group.push_back(rank[r0 + i]);
+      }
     }
     for (; n_done <= uint32_t(kMaxN); ++n_done) type_begin_[n_done] = uint32_t(types_.size());
   }
@@ -175,10 +178,9 @@ void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uin
   lobe_pmf_.clear();
   lobes_.reserve(acc.size());
   lobe_pmf_.reserve(acc.size());
-  for (Type& t : types_) {
-    size_t g = 0;
-    while (groups[g].key != (uint32_t(t.n - 1) << 16 | t.tau)) ++g;
-    Scratch& S = lobes[g];
+  for (size_t ti = 0; ti < types_.size(); ++ti) {
+    Type& t = types_[ti];
+    Scratch& S = lobes[type_group[ti]];
     const size_t m = S.mu.size();
     S.kappa.resize(m);
     nearest_distances(S.mu.data(), m, S.kappa.data());  // sigma_i
@@ -210,13 +212,6 @@ int ChainDistribution::sample_type(int n, float u) const {
   while (i + 1 < e && !(x < types_[i].cdf)) ++i;
   while (types_[i].pmf == 0.f && i + 1 < e) ++i;
   return int(i);
-}
-
-bool ChainDistribution::sample_tau(int n, float u, uint16_t& tau) const {
-  const int t = sample_type(n, u);
-  if (t < 0) return false;
-  tau = types_[size_t(t)].tau;
-  return true;
 }
 
 int ChainDistribution::find_type(int n, uint16_t tau) const {

@@ -30,20 +30,19 @@ class ChainDistribution {
 
   int sample_n(float u) const;
   // P_e(n), read from a copy kept in the object (no second cache line to
-  // fetch: the estimator reads it for every estimate, design-notes "Queries").
+  // fetch: the estimator reads it for every estimate).
   float pmf_n(int n) const { return n < 1 || n > kMaxN ? 0.f : n_pmf_[size_t(n - 1)]; }
   // sum_{k=1..nmax} P_e(k), summed in double in the order k = 1, 2, ... (as a
   // loop over pmf_n would: the same bits).
   double mass_n(int nmax) const { return n_mass_[size_t(std::clamp(nmax, 0, kMaxN))]; }
-  // Type for a given n: returns false when there is no sample of length n.
-  bool sample_tau(int n, float u, uint16_t& tau) const;
   float pmf_tau(int n, uint16_t tau) const;
   // Direction for (n, tau); density is per solid angle.
   bool sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, Vec3& dir) const;
   float pdf_dir(int n, uint16_t tau, const Vec3& dir) const;
-  // The same draws by the index of a type (n, tau) in the leaf's table, which
-  // the estimator uses: sample_type gives sample_tau's choice (-1 for none),
-  // sample_dir_of sample_dir's direction, without looking the type up again.
+  // The draws the estimator makes, by the index of a type (n, tau) in the
+  // leaf's table: sample_type draws tau ~ P_e(tau | n) (-1: no sample of
+  // length n), sample_dir_of the direction sample_dir gives for that type,
+  // without looking the type up again.
   int sample_type(int n, float u) const;
   // Does the leaf hold a sample of type (n, tau)?
   bool has_type(int n, uint16_t tau) const { return find_type(n, tau) >= 0; }
@@ -68,11 +67,11 @@ class ChainDistribution {
   // them by cdf (as DiscreteDistribution::sample does, the same index), then
   // reads the type's alias records in lobes_: two arrays for the whole draw,
   // where per-n vectors and a map of (n, tau) took up to seven dependent
-  // loads (design-notes, "Queries").
+  // loads (design-notes, "Manifold path guiding": the lobe draw).
   struct Type {
     double cdf;        // P_e(tau' <= tau | n): the upper end of its bin
     float pmf;         // P_e(tau | n) (Eq. 11)
-    uint16_t n, tau;
+    uint16_t tau;
     uint32_t first, count;  // its lobes: lobes_[first, first + count)
   };
   int find_type(int n, uint16_t tau) const;

@@ -69,12 +69,12 @@ struct Stats {
   uint64_t owned_shared = 0;         // path-traced chain paths kept with an MIS weight < 1
   uint64_t chain_ns = 0;             // time in chain estimation (summed over threads)
   uint64_t bernoulli_ns = 0;         // of which: the Bernoulli trials estimating 1/P
+  uint64_t chain_unknown_type = 0;   // first trials whose type the leaf never saw (known_types): the path tracer's
   // Guiding (STree query, sampling n, tau, omega from a leaf), in the estimator
   // and in the path tracer's MIS side and selective activation; one call in 8
   // timed and counted 8 times (chain_estimator.cpp). guide_clock_ns: the
   // clock's own share of those intervals, which to_map's guide_ns leaves out
   // (guide_ns_raw keeps it).
-  uint64_t chain_unknown_type = 0;   // first trials whose type the leaf never saw (known_types): the path tracer's
   uint64_t guide_ns = 0;
   uint64_t guide_clock_ns = 0;
   uint64_t walk_steps = 0;           // manifold-walk work: traced vertices + those of accepted iterations, all trials

@@ -437,37 +437,33 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
     c = c0 + np.where(q > 0.0, qc * c1, -mis) + (kd - 1.0) * o * (TREE_COST if branched else 1.0)
     c = np.maximum(c, 1e-6)
     wv = _box_blur(_weights(mean, objective, radius) * v, radius)
+
+    def eq4(k: np.ndarray, scale: float = 1.0) -> np.ndarray:
+        """Eq. 4's map at the image means of k, its square root times scale."""
+        c_mean, v_mean = float(np.mean(k * c)), float(np.mean(wv / k))
+        k_new = np.clip(np.rint(scale * np.sqrt(wv * c_mean / (c * v_mean))), 1.0, float(k_max))
+        k_new = np.where(np.isfinite(k_new), k_new, 1.0)
+        return k_new if where is None else np.where(where, k_new, 1.0)
+
     k = np.ones(shape)
     for _ in range(iterations):
-        c_mean, v_mean = float(np.mean(k * c)), float(np.mean(wv / k))
-        if not (c_mean > 0.0 and v_mean > 0.0):
+        if not (float(np.mean(k * c)) > 0.0 and float(np.mean(wv / k)) > 0.0):
             break
-        k_new = np.clip(np.rint(np.sqrt(wv * c_mean / (c * v_mean))), 1.0, float(k_max))
-        k_new = np.where(np.isfinite(k_new), k_new, 1.0)
-        if where is not None:
-            k_new = np.where(where, k_new, 1.0)
+        k_new = eq4(k)
         if np.array_equal(k_new, k):
             break
         k = k_new
     cost = float(np.mean(k * c) / np.mean(c))
     if max_cost is not None and cost > max_cost:
-        c_mean, v_mean = float(np.mean(k * c)), float(np.mean(wv / k))
-        base = np.sqrt(wv * c_mean / (c * v_mean))
-        base = np.where(np.isfinite(base), base, 0.0)
-        if where is not None:
-            base = np.where(where, base, 0.0)
-
-        def at(scale: float) -> np.ndarray:
-            return np.clip(np.rint(scale * base), 1.0, float(k_max))
-
-        lo, hi = 0.0, 1.0   # cost(at(lo)) <= max_cost (at(0) is all ones), cost(at(hi)) > max_cost
+        fixed = k   # the fixed point whose means the capped map keeps
+        lo, hi = 0.0, 1.0   # cost at lo <= max_cost (scale 0: all ones), at hi > max_cost
         for _ in range(40):
             mid = 0.5 * (lo + hi)
-            if float(np.mean(at(mid) * c) / np.mean(c)) <= max_cost:
+            if float(np.mean(eq4(fixed, mid) * c) / np.mean(c)) <= max_cost:
                 lo = mid
             else:
                 hi = mid
-        k = at(lo)
+        k = eq4(fixed, lo)
         info.update(pixel_split_capped=cost, pixel_split_scale=lo)
     split = k > 1.0
     info.update(pixel_split_fraction=float(np.mean(split)),
