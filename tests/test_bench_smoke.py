@@ -112,8 +112,12 @@ def test_compare(env):
             for k in ("mse", "relmse", "mape"):
                 s = m["summary"][region][k]
                 assert s["n"] == 2 and s["mean"] > 0 and s["std"] >= 0
+            # the render's own MSE: the measured one less the reference's floor
+            floor = sc["reference"]["convergence"][f"mse_floor_{region}"]
+            assert m["summary"]["mse_above_floor"][region] == pytest.approx(
+                m["summary"][region]["mse"]["mean"] - floor, rel=1e-9, abs=1e-15)
         assert 0.2 < m["summary"]["seconds"]["mean"] < 1.0
-    assert "relMSE caustic" in text
+    assert "relMSE caustic" in text and "MSE − floor caustic" in text
 
 
 def test_curves(env):

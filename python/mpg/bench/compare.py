@@ -41,6 +41,25 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def above_floor(summ: dict[str, Any], conv: dict[str, Any]) -> dict[str, Any]:
+    """Mean MSE over the seeds minus the reference's MSE floor, per region.
+
+    The reference is unbiased and independent of the render, so in expectation
+    MSE(render, reference) = MSE(render, truth) + floor, with floor the mean
+    variance of the reference's pixels (reference.convergence). The difference
+    is an unbiased estimate of the render's own MSE; it can come out negative
+    when the render's error is below the reference's noise, and is then
+    reported as it is (a sign the reference is too noisy to rank the render)."""
+    out: dict[str, Any] = {}
+    for reg in REGIONS:
+        fl = conv.get(f"mse_floor_{reg}")
+        if summ.get(reg) is None or fl is None or summ[reg]["mse"]["mean"] is None:
+            out[reg] = None
+        else:
+            out[reg] = float(summ[reg]["mse"]["mean"] - fl)
+    return out
+
+
 def skip_reason(spec: IntegratorSpec) -> str | None:
     from mpg.bench.runners import mitsuba_importable
 
@@ -95,6 +114,7 @@ def run(scenes: list[BenchScene], specs: list[IntegratorSpec], time: float, seed
                 srec["skipped"].append({"integrator": spec.text, "reason": str(e)})
                 continue
             summ = summarise(runs)
+            summ["mse_above_floor"] = above_floor(summ, srec["reference"]["convergence"])
             srec["methods"].append({"integrator": spec.text, "runs": runs, "summary": summ})
             m0 = runs[0]["metrics"]
             label = f"relMSE {report.fmt(m0['image']['relmse'])}"
@@ -139,19 +159,25 @@ def _scene_md(sc: BenchScene, srec: dict[str, Any], png: str) -> str:
                  f"{report.fmt(c.get('mse_floor_image'))} image / "
                  f"{report.fmt(c.get('mse_floor_caustic'))} caustic.\n")
     has_box = sc.caustic_box is not None
-    header = ["integrator", "time (s)", "spp (mean)", "MSE", "relMSE", "MAPE"]
+    header = ["integrator", "time (s)", "spp (mean)", "MSE", "relMSE", "MAPE",
+              "MSE − floor"]
     if has_box:
-        header += ["MSE caustic", "relMSE caustic", "MAPE caustic"]
+        header += ["MSE caustic", "relMSE caustic", "MAPE caustic", "MSE − floor caustic"]
     rows = []
     for m in srec["methods"]:
         s = m["summary"]
         row = [m["integrator"], report.fmt_spread(s["seconds"]),
                report.fmt(round(s["spp"]["mean"]))]
+        af = s.get("mse_above_floor") or {}
         row += [report.fmt_spread(s["image"][k]) for k in METRIC_NAMES]
+        row.append(report.fmt(af.get("image")))
         if has_box:
             row += [report.fmt_spread(s["caustic"][k]) for k in METRIC_NAMES]
+            row.append(report.fmt(af.get("caustic")))
         rows.append(row)
     lines.append(report.md_table(header, rows))
+    lines.append("\n\"MSE − floor\": the mean MSE less the reference's MSE floor, an unbiased "
+                 "estimate of the render's own MSE (negative: below the reference's noise).")
     for sk in srec["skipped"]:
         lines.append(f"\n*{sk['integrator']} skipped: {sk['reason']}*")
     lines.append(f"\n![{sc.label}]({png})\n")
