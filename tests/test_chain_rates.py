@@ -165,6 +165,30 @@ def test_pixels_go_to_the_path_tracer_where_it_is_as_good_for_less():
         assert np.all(qb == 0.0) if zero else np.all(qb > 0)
 
 
+def test_one_glint_does_not_hand_its_window_to_the_path_tracer():
+    """The "negligible" route to rate 0 compares the chains' second moment
+    with the pixel's own variance: one pixel whose variance is huge (a tiny
+    light's glint in the glass, seen by the camera) may go to the path
+    tracer, but not the pixels of its window, whose caustic the path tracer
+    never finds (emitter_size_003 rendered 7x7 black squares around its
+    glints when the window's variance was used)."""
+    h, w = 15, 15
+    m2 = np.full((h, w), 1.0)                 # the caustic: chains carry it
+    c1 = np.full((h, w), 5e3)
+    c0 = np.full((h, w), 1e3)
+    v1 = np.full((h, w), 0.5)
+    v1[7, 7] = 1e7                            # the glint, in one pixel
+    var = v1 + (1 / 0.125 - 1) * m2
+    # the path tracer alone never finds the chains' light (no hits, mean 0)
+    # but sees the glint as the chains' samples do
+    a = _acc(m2, c1, c0, var, mean=1.0, alt_var=v1, alt_mean=0.0, alt_hits=0.0)
+    q, _ = learn_rates(a, radius=3)
+    neighbours = np.ones((h, w), dtype=bool)
+    neighbours[7, 7] = False
+    assert np.all(q[neighbours] > 0), np.argwhere(q == 0)
+    assert q[7, 7] == 0.0                     # the glint's own pixel: the chains are negligible there
+
+
 FLIP_SLACK = 1e-3
 
 
