@@ -62,7 +62,8 @@ STEP_COST = 4.0
 HANDOFF_MIN_HITS = 64
 # ... or the chains' second moment in the window below this fraction of the
 # pixel's own variance per sample: even if the path tracer never found their
-# light, its square would stay below the noise up to ~1 000 spp.
+# light, its square would stay below the noise up to ~1 000 spp (for the
+# window's mean second moment).
 HANDOFF_NEGLIGIBLE = 1e-3
 
 
@@ -212,12 +213,12 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
         # often (its second moment from a few rare hits -- a dim reflection
         # caustic of a small light -- is mostly an underestimate), or where the
         # chains' light cannot matter: E[X]^2 <= E[X^2] below HANDOFF_NEGLIGIBLE
-        # of one sample's variance (double_slabs: the glints of the light in
-        # the slabs' bumpy tops set the variance, the chains' E[X^2] is 0.7 % of it).
-        # The pixel's own variance, not its window's: one glint of a tiny light
-        # (emitter_size_003) set the window mean of every pixel around it, and
-        # the whole 7x7 window lost its caustic to the path tracer, which
-        # never finds that light (black squares, relMSE 0.87 against 0.06)
+        # of the pixel's own variance per sample (double_slabs: the glints of
+        # the light in the slabs' bumpy tops set the variance). Not the window's
+        # mean variance: one glint of a tiny light (emitter_size_003) set the
+        # window mean of every pixel around it, and the whole 7x7 window lost
+        # its caustic to the path tracer, which never finds that light (black
+        # squares, relMSE 0.83-0.91 against sms_star's 0.04-0.08)
         eligible = has & ((_box_blur(finite(acc.alt_hits), radius, total=True) >= min_hits) |
                           (_box_blur(m2_raw, radius) <= negligible * var_t))
 

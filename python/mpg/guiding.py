@@ -151,8 +151,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # chain_handoff: a pixel may get rate 0, the path tracer alone (mpg.chain_rates, Eq. 2)
     handoff_given = "chain_handoff" in params
     handoff = bool(params.pop("chain_handoff", True))
-    # ... where the chains' second moment is below this fraction of a sample's
-    # variance (or the path tracer found their light often: mpg.chain_rates)
+    # ... where the chains' second moment is below this fraction of the pixel's
+    # own variance per sample (or the path tracer found their light often: mpg.chain_rates)
     negligible = float(params.pop("chain_handoff_negligible", HANDOFF_NEGLIGIBLE))
     if not 0.0 <= negligible <= 1.0:
         raise RenderError(f"chain_handoff_negligible must be in [0, 1], got {negligible}")
