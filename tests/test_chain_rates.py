@@ -339,20 +339,24 @@ def test_mpg_with_learned_rates_is_deterministic(scenes_dir):
     assert c.stats["chain_handed"] == 0
 
 
-def test_an_arbitrary_rate_map_keeps_the_image_unbiased(scenes_dir):
+@pytest.mark.parametrize("mis_rate", [False, True])
+def test_an_arbitrary_rate_map_keeps_the_image_unbiased(scenes_dir, mis_rate):
     """Any per-pixel rates in {0} and (0, 1] fixed before the render leave the
     expectation alone: a random map in [0.05, 1] with a third of the pixels at 0
     (the path tracer alone) on sms_star agrees with the path tracer (|z| < 5 on
-    the image and nine regions, p < 6e-7 each)."""
+    the image and nine regions, p < 6e-7 each). With mis_rate the balance
+    heuristic weighs b / q, q the pixel's rate, on both sides: still a
+    partition of unity per pixel, so still unbiased."""
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
     rng = np.random.default_rng(7)
     qmap = np.exp(rng.uniform(np.log(0.05), 0.0, (24, 24))).astype(np.float32)
     qmap[rng.random((24, 24)) < 1 / 3] = 0.0
     ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
-    img = mpg.render(sc, integrator={"type": "sms_star"}, spp=1024, seed=13, progress=False,
+    img = mpg.render(sc, integrator={"type": "sms_star", "mis_rate": mis_rate}, spp=1024, seed=13, progress=False,
                      chain_rate_map=qmap)
     st = img.stats
     assert st["chain_skipped"] > 0 and st["chain_contributions"] > 0 and st["chain_handed"] > 0
+    assert st["owned_shared"] > 0
     assert st["rejected_samples"] == 0
     assert image_zmax(img, ref, REGIONS_24) < 5
 

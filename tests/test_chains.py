@@ -77,6 +77,7 @@ def test_point_light_through_mirror_closed_form(integ):
     ({"type": "sms", "tau": "TT"}, "slab_glass.xml", 384),
     ({"type": "sms_star", "max_chain": 4}, "slab_glass.xml", 256),
     ({"type": "sms_star", "chain_rate": 0.3}, "sphere_glass.xml", 768),
+    ({"type": "sms_star", "chain_rate": 0.05, "mis_rate": True}, "sphere_glass.xml", 2048),
     ({"type": "sms_star", "step_halvings": 1}, "slab_glass.xml", 256),
 ])
 def test_area_light_chains_agree_with_path_tracing(integ, scene, spp_chain, scenes_dir):

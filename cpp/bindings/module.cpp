@@ -250,6 +250,7 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
     cp.uniqueness_threshold = get<double>(p, "uniqueness_threshold", cp.uniqueness_threshold);
     cp.max_trials = get<int>(p, "max_trials", cp.max_trials);
     cp.mis = get<bool>(p, "mis", cp.mis);
+    cp.mis_rate = get<bool>(p, "mis_rate", cp.mis_rate);
     // mpg runs the estimator at 1/8 of the separators by default (measured:
     // docs/results.md, "Chain estimates by roulette"); sms and sms_star keep the
     // papers' every-separator rule unless asked.

@@ -586,6 +586,7 @@ float ChainEstimator::pt_weight(const SurfaceInteraction& sep, const BSDFContext
   const auto tb = Clock::now();
   thread_local std::vector<Round> rounds;
   rounds.clear();
+  b = rate_b(b, st);  // mis_rate: b / q
   const double beta = a / (a + b);
   const int K = mis_rounds(c.xD, c.nD, lp, n, offsets, seed_guide, tau, w_star, beta, rng, st, capped,
                            p_.count_limits ? &rounds : nullptr);
@@ -738,7 +739,7 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     // by the MIS-aware Bernoulli rounds. b = 0 (point/spot lights, glossy or
     // normal-mapped chains, mis off): SMS's F K / a, <1/P> = K (supplemental Sec. 3.2).
     const double a = lp.pdf * pn;
-    const double b = lp.point ? 0.0 : pt_density(chain, tau, ctx, si.wi, G);
+    const double b = lp.point ? 0.0 : rate_b(pt_density(chain, tau, ctx, si.wi, G), st);
     if (!std::isfinite(b)) break;  // a P / (a P + b) = 0
     const DVec3 w_star = glm::normalize(chain.v[0].p - xD);
     const std::string tau_star = tau;

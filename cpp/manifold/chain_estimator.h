@@ -101,6 +101,11 @@ struct ChainParams {
   // lights) by the balance heuristic instead of giving them whole to the estimator
   // (docs/design-notes.md, "Chain paths shared with the path tracer").
   bool mis = true;
+  // ... and count the roulette's rate q (chain_rate below, or the pixel's) in
+  // the estimator's density: the balance heuristic between the path tracer (b)
+  // and "run the estimator w.p. q, then find the chain" (q a P), i.e. b / q in
+  // place of b on both sides (design-notes, "The rate in the balance heuristic").
+  bool mis_rate = true;
   // Probability that a separator runs the estimator at all (Russian roulette on
   // the chain estimate, weighted 1/q; design-notes "Chain estimates by roulette").
   float chain_rate = 1.0f;
@@ -226,6 +231,15 @@ class ChainEstimator {
   // pdf_bsdf(omega_D) * pt_letters_pdf * G; 0 when the path is not shared.
   double pt_density(const ManifoldChain& c, const std::string& tau, const BSDFContext& ctx,
                     const Vec3& wi, double G) const;
+  // The path tracer's density as the balance heuristic weighs it against the
+  // estimator's a P: b, or with mis_rate b / q, q the roulette's rate at this
+  // pixel (path.cpp takes it the same way), so that the weights are those of
+  // the path tracer against "run the estimator w.p. q, then find the chain".
+  double rate_b(double b, const Stats& st) const {
+    if (!p_.mis_rate || !(b > 0.0)) return b;
+    const double q = st.pixel_chain_rate >= 0.f ? double(st.pixel_chain_rate) : double(p_.chain_rate);
+    return q > 0.0 && q < 1.0 ? b / q : b;
+  }
   // The path tracer's side: chain, light point and densities of a traced path.
   // Returns 0: not shared (the estimator takes it whole), 1: the estimator
   // cannot produce it (the path tracer keeps it whole), 2: shared (a, b set).

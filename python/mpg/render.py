@@ -22,7 +22,7 @@ IMPLEMENTED = {"path", "sms", "sms_star", "mpg"}
 PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters", "camera_delta", "delta_branch"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
                 "threshold", "max_iterations", "min_step", "step_halvings", "form", "glossy_threshold",
-                "mis", "chain_rate"}
+                "mis", "mis_rate", "chain_rate"}
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
                 "guide_dir", "training_fraction", "training_guide_fraction", "stree_c", "stree_epsilon", "stree_filter",
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
@@ -30,7 +30,7 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "chain_handoff_negligible",
                 "delta_split", "pixel_split", "pixel_split_max_cost", "limit_in_training", "known_types"}
 BOOL_PARAMS = {"hide_emitters", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
-               "mis", "chain_handoff", "limit_in_training", "known_types"}
+               "mis", "mis_rate", "chain_handoff", "limit_in_training", "known_types"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
 # The SMS paper's integrators, with their parameter names, map onto `sms`.
 SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
