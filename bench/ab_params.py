@@ -1,7 +1,7 @@
 """Interleaved A/B of `mpg` parameter sets on one scene at equal time: per seed
-the variants run in turn, in reversed order on every other seed (A B, B A,
-...), so a drift of the machine's speed during the run falls on all of them
-alike (`mpg-bench compare` runs all seeds of one method before the next, and
+the variants run in turn, the order rotated by one from seed to seed (A B,
+B A, ...; with three, A B C, B C A, C A B), so a drift of the machine's speed
+during the run falls on all of them alike (`mpg-bench compare` runs all seeds of one method before the next, and
 this machine's speed moved by up to 1.3x between runs of one command).
 
     python bench/ab_params.py sphere --time 20 --seeds 4 --variants '{}' '{"chain_rate_min": 0.015625}'
@@ -11,13 +11,17 @@ this machine's speed moved by up to 1.3x between runs of one command).
 Each variant is a JSON object of `mpg` parameters ('{}': the defaults).
 Prints MSE, MSE less the reference's floor (docs/results.md, "Metrics"),
 relMSE and spp per run and per variant; needs the scene's reference in the
-cache (mpg-bench reference). Writes bench/results/ab_params-<scene>.json."""
+cache (mpg-bench reference). Writes bench/results/ab_params-<scene>-<hash of
+the arguments>.json after every run (or --out FILE), so an interrupted run
+keeps what it has."""
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import pathlib
+import shlex
 import sys
 
 import numpy as np
@@ -27,9 +31,12 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 def main() -> int:
     import mpg
+    import importlib
+
     from mpg import metrics
+    render_mod = importlib.import_module("mpg.render")   # (mpg.render is also the function)
     from mpg.bench import reference as refmod
-    from mpg.bench.scenes import resolve_scene
+    from mpg.bench.scenes import BenchError, resolve_scene
 
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
@@ -38,15 +45,32 @@ def main() -> int:
     ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                     help="scene parameter, e.g. res=128 (repeatable)")
     ap.add_argument("--variants", nargs="+", required=True, metavar="JSON")
+    ap.add_argument("--out", help="results file (default bench/results/ab_params-<scene>-<hash>.json)")
     args = ap.parse_args()
+    if not args.time > 0:
+        ap.error("--time must be > 0")
+    if args.seeds < 1:
+        ap.error("--seeds must be >= 1")
     try:
         variants = [json.loads(v) for v in args.variants]
     except json.JSONDecodeError as e:
         ap.error(f"a variant is not JSON: {e}")
-    if not all(isinstance(v, dict) for v in variants):
-        ap.error("each variant must be a JSON object, e.g. '{\"chain_rate_min\": 0.0625}'")
+    if not all(isinstance(v, dict) and "type" not in v for v in variants):
+        ap.error("each variant must be a JSON object of mpg parameters without 'type', "
+                 "e.g. '{\"chain_rate_min\": 0.0625}'")
+    if any("=" not in p for p in args.param):
+        ap.error("--param takes NAME=VALUE, e.g. res=128")
     params = dict(p.split("=", 1) for p in args.param)
-    bs = resolve_scene(args.scene, params)
+    known = render_mod.PATH_PARAMS | render_mod.CHAIN_PARAMS | render_mod.GUIDE_PARAMS
+    for v in variants:
+        if set(v) - known:
+            ap.error(f"unknown mpg parameter(s) {sorted(set(v) - known)} in {json.dumps(v)}")
+    try:
+        bs = resolve_scene(args.scene, params)
+        sc = mpg.load_file(bs.path, **params)
+    except (BenchError, mpg.SceneError) as e:
+        print(f"ab_params: {e}", file=sys.stderr)
+        return 1
     info = refmod.find_reference(bs)
     if info is None:
         print(f"ab_params: no cached reference of {args.scene} {params}; make it with mpg-bench reference",
@@ -54,32 +78,46 @@ def main() -> int:
         return 1
     ref = refmod.load_reference(info)[0]
     floor = float(info["convergence"].get("mse_floor_image") or 0.0)
-    sc = mpg.load_file(bs.path, **params)
+    command = shlex.join(["python", "bench/ab_params.py"] + sys.argv[1:])
+    if args.out:
+        out_path = pathlib.Path(args.out)
+    else:
+        key = hashlib.sha1(json.dumps([args.scene, params, args.time, args.seeds, variants]).encode()).hexdigest()
+        out_path = ROOT / "bench" / "results" / f"ab_params-{pathlib.Path(args.scene).stem}-{key[:10]}.json"
+    out_path.parent.mkdir(parents=True, exist_ok=True)
     runs: list[list[dict]] = [[] for _ in variants]
+
+    def summary() -> dict:
+        out = {"command": command, "scene": args.scene, "params": params, "time": args.time,
+               "mse_floor_image": floor, "variants": []}
+        for v, rs in zip(variants, runs):
+            m = float(np.mean([r["mse"] for r in rs])) if rs else float("nan")
+            out["variants"].append({"variant": v, "runs": rs, "mse": m, "mse_above_floor": m - floor,
+                                    "relmse": float(np.mean([r["relmse"] for r in rs])) if rs else float("nan"),
+                                    "spp": float(np.mean([r["spp"] for r in rs])) if rs else 0.0})
+        return out
+
     for seed in range(args.seeds):
-        order = list(range(len(variants)))
-        if seed % 2:
-            order.reverse()
-        for i in order:
-            img = mpg.render(sc, dict(type="mpg", **variants[i]), time=args.time, seed=seed, progress=False)
+        n = len(variants)
+        for i in [(seed + j) % n for j in range(n)]:
+            try:
+                img = mpg.render(sc, dict(type="mpg", **variants[i]), time=args.time, seed=seed, progress=False)
+            except mpg.RenderError as e:
+                print(f"ab_params: {json.dumps(variants[i])}: {e}", file=sys.stderr)
+                return 1
+            if img.spp == 0:
+                print(f"ab_params: {json.dumps(variants[i])} rendered no sample in {args.time} s", file=sys.stderr)
+                return 1
             rec = {"seed": seed, "spp": int(img.spp), "mse": metrics.mse(img.rgb, ref),
                    "relmse": metrics.relmse(img.rgb, ref)}
             runs[i].append(rec)
             print(f"{args.scene} seed {seed} {json.dumps(variants[i])}: MSE {rec['mse']:.4g} "
                   f"relMSE {rec['relmse']:.3g} spp {rec['spp']}", flush=True)
-    out = {"command": " ".join(sys.argv), "scene": args.scene, "params": params, "time": args.time,
-           "mse_floor_image": floor, "variants": []}
-    for v, rs in zip(variants, runs):
-        m = float(np.mean([r["mse"] for r in rs]))
-        summ = {"variant": v, "runs": rs, "mse": m, "mse_above_floor": m - floor,
-                "relmse": float(np.mean([r["relmse"] for r in rs])),
-                "spp": float(np.mean([r["spp"] for r in rs]))}
-        out["variants"].append(summ)
-        print(f"== {json.dumps(v)}: MSE {m:.4g} (less floor {m - floor:.4g}) relMSE {summ['relmse']:.3g} "
-              f"spp {summ['spp']:.0f}")
-    res = ROOT / "bench" / "results"
-    res.mkdir(parents=True, exist_ok=True)
-    (res / f"ab_params-{args.scene}.json").write_text(json.dumps(out, indent=2))
+            out_path.write_text(json.dumps(summary(), indent=2))
+    for s in summary()["variants"]:
+        print(f"== {json.dumps(s['variant'])}: MSE {s['mse']:.4g} (less floor {s['mse_above_floor']:.4g}) "
+              f"relMSE {s['relmse']:.3g} spp {s['spp']:.0f}")
+    print(f"wrote {out_path}")
     return 0
 
 

@@ -109,7 +109,8 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
     if (chains_ && separator && !cd_only) {
       // Russian roulette on the (costly) chain estimate: E[1{u < q} X / q] = E[X]
       // for any q > 0, and the path tracer's share of the chain paths does not
-      // depend on it, so the sum stays unbiased.
+      // depend on whether the estimator ran (with mis_rate it depends on q, the
+      // pixel's fixed rate, as the estimator's X does), so the sum stays unbiased.
       // (q = 1 draws no variate: sms/sms_star images are unchanged.)
       // q is the pixel's rate when the pass has a map (mpg's learned rates),
       // the estimator's otherwise. q = 0: the pixel's chain light is the path

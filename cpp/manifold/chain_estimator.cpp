@@ -575,6 +575,7 @@ float ChainEstimator::pt_weight(const SurfaceInteraction& sep, const BSDFContext
   double a = 0.0, b = 0.0;
   const int shared = pt_densities(sep, sep_ctx, sep_depth, max_depth, verts, tau, light, c, lp, guide, a, b, &st, known);
   if (shared != 2) return shared == 1 ? 1.f : 0.f;
+  b = rate_b(b, st);  // mis_rate: b / q, q this pixel's rate (as estimate() takes it)
   if (!std::isfinite(b)) return 1.f;  // the estimator's share a P / (a P + b) vanishes
   // b / (a P + b) = b / (a + b) * E[K'] with the estimator's own trials
   // (same n, leaf and seed mixture) aiming at this chain.
@@ -586,7 +587,6 @@ float ChainEstimator::pt_weight(const SurfaceInteraction& sep, const BSDFContext
   const auto tb = Clock::now();
   thread_local std::vector<Round> rounds;
   rounds.clear();
-  b = rate_b(b, st);  // mis_rate: b / q
   const double beta = a / (a + b);
   const int K = mis_rounds(c.xD, c.nD, lp, n, offsets, seed_guide, tau, w_star, beta, rng, st, capped,
                            p_.count_limits ? &rounds : nullptr);
@@ -753,7 +753,8 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     if (p_.record && !capped) {
       // Sub-path sample for the next training iteration: w = T <1/P> (MPG Eq. 9),
       // times the estimator's share a P / (a P + b) of the path when it is shared
-      // (K a / (a + b) estimates that share over P; = K when b = 0).
+      // (K a / (a + b) estimates that share over P; = K when b = 0). With
+      // mis_rate b is b / q_t here: the share at the training passes' rate.
       SubpathSample ss;
       for (int c = 0; c < 3; ++c) { ss.xD[c] = float(xD[c]); ss.xL[c] = float(lp.p[c]); }
       const Vec2 e = oct_encode(to_f(w_star));

@@ -8,6 +8,12 @@ cost. One rate for the whole image is a compromise: where the chain estimator
 carries the light (a caustic from a small light) q should be 1, where the path
 tracer finds the same light well it should be small.
 
+With `mis_rate` (the default) the shared chain paths' weights move with q too
+(the path tracer's density b / q against the estimator's a P), so M_p below is
+the estimator's share at the training rate q_t, and V_p(q) is exact at q = q_t
+only: away from q_t it overstates the second moment on both sides, which pulls
+the rates towards q_t (design-notes, "The rate in the balance heuristic").
+
 For the image's MSE after a fixed time, with per pixel p
   V_p(q_p) = V1_p + (1/q_p - 1) M_p   (variance of one sample; M_p = E[sum X_j^2])
   C_p(q_p) = c0_p + q_p c1_p          (cost of one sample; c1_p = chain cost at q = 1)
