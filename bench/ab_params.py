@@ -36,7 +36,7 @@ def main() -> int:
     from mpg import metrics
     render_mod = importlib.import_module("mpg.render")   # (mpg.render is also the function)
     from mpg.bench import reference as refmod
-    from mpg.bench.scenes import BenchError, resolve_scene
+    from pixel_errors import load_scene   # bench/, the script's own folder
 
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
@@ -65,12 +65,10 @@ def main() -> int:
     for v in variants:
         if set(v) - known:
             ap.error(f"unknown mpg parameter(s) {sorted(set(v) - known)} in {json.dumps(v)}")
-    try:
-        bs = resolve_scene(args.scene, params)
-        sc = mpg.load_file(bs.path, **params)
-    except (BenchError, mpg.SceneError) as e:
-        print(f"ab_params: {e}", file=sys.stderr)
+    loaded = load_scene(args.scene, params, "ab_params")
+    if loaded is None:
         return 1
+    bs, sc = loaded
     info = refmod.find_reference(bs)
     if info is None:
         print(f"ab_params: no cached reference of {args.scene} {params}; make it with mpg-bench reference",

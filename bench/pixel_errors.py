@@ -37,6 +37,20 @@ def cached_reference(scene: str, tool: str):
     return sc, refmod.load_reference(info)[0]
 
 
+def load_scene(scene: str, params: dict[str, str], tool: str):
+    """(bench scene, mpg scene) of a scene name or path with scene parameters,
+    or None after printing why not."""
+    import mpg
+    from mpg.bench.scenes import BenchError, resolve_scene
+
+    try:
+        bs = resolve_scene(scene, params)
+        return bs, bs.load_mpg()
+    except (BenchError, mpg.SceneError) as e:
+        print(f"{tool}: {e}", file=sys.stderr)
+        return None
+
+
 def main() -> int:
     import mpg
     import mpg.guiding as guiding

@@ -27,7 +27,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 def main() -> int:
     import mpg
-    from mpg.bench.scenes import BenchError, resolve_scene
+    from pixel_errors import load_scene   # bench/, the script's own folder
 
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
@@ -52,12 +52,10 @@ def main() -> int:
             mpg_params[k] = json.loads(v)
         except json.JSONDecodeError:
             mpg_params[k] = v
-    try:
-        bs = resolve_scene(args.scene, params)
-        sc = mpg.load_file(bs.path, **params)
-    except (BenchError, mpg.SceneError) as e:
-        print(f"variance_regions: {e}", file=sys.stderr)
+    loaded = load_scene(args.scene, params, "variance_regions")
+    if loaded is None:
         return 1
+    sc = loaded[1]
     try:
         imgs = {k: mpg.render(sc, integ, time=args.time, seed=args.seed, progress=False)
                 for k, integ in (("path", "path"), ("mpg", dict(type="mpg", **mpg_params)))}
