@@ -116,7 +116,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       // the estimator's otherwise. q = 0: the pixel's chain light is the path
       // tracer's whole (above); the same for every sample of the pixel, so
       // each path is counted once.
-      const float q = st.pixel_chain_rate >= 0.f ? st.pixel_chain_rate : chains_->chain_rate();
+      const float q = chains_->rate_at(st);
       if (q <= 0.f) {
         st.chain_handed++;
       } else if (q >= 1.f || rng.next_float() < q) {

@@ -780,7 +780,7 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     st.chain_contributions++;
     // The largest estimate as it enters the sample: after the roulette's 1/q
     // (path.cpp takes q the same way), where low rates make the fireflies.
-    const double q = st.pixel_chain_rate >= 0.f ? double(st.pixel_chain_rate) : double(p_.chain_rate);
+    const double q = double(rate_at(st));
     if (p_.count_limits) {
       // The second moment X^2 / q (mean over RGB) this estimate adds to its
       // sample, and what it would have been, and cost, under each limit.

@@ -126,7 +126,11 @@ class ChainEstimator {
   // A point or spot light among the chain lights: the path tracer never hits
   // it, so rate 0 (the path tracer alone) would lose its light through chains.
   bool has_delta_lights() const { return has_delta_lights_; }
-  float chain_rate() const { return p_.chain_rate; }
+  // The roulette's rate at the pixel being rendered: its map value when the
+  // pass has a map (mpg's learned rates; 0: handed to the path tracer), the
+  // estimator's chain_rate otherwise. path.cpp's roulette, the weights
+  // (rate_b) and the stats all take q from here.
+  float rate_at(const Stats& st) const { return st.pixel_chain_rate >= 0.f ? st.pixel_chain_rate : p_.chain_rate; }
   // Does the estimator produce chains of type `tau` at a separator of loop depth
   // `depth` (path tracer's convention, camera hit = 0) under `max_depth`?
   bool owns(uint32_t depth, uint32_t max_depth, const std::string& tau) const;
@@ -237,7 +241,7 @@ class ChainEstimator {
   // the path tracer against "run the estimator w.p. q, then find the chain".
   double rate_b(double b, const Stats& st) const {
     if (!p_.mis_rate || !(b > 0.0)) return b;
-    const double q = st.pixel_chain_rate >= 0.f ? double(st.pixel_chain_rate) : double(p_.chain_rate);
+    const double q = double(rate_at(st));
     return q > 0.0 && q < 1.0 ? b / q : b;
   }
   // The path tracer's side: chain, light point and densities of a traced path.
