@@ -1,8 +1,10 @@
 """Interleaved A/B of `mpg` parameter sets on one scene at equal time: per seed
 the variants run in turn, the order rotated by one from seed to seed (A B,
 B A, ...; with three, A B C, B C A, C A B), so a drift of the machine's speed
-during the run falls on all of them alike (`mpg-bench compare` runs all seeds of one method before the next, and
-this machine's speed moved by up to 1.3x between runs of one command).
+during the run falls on all of them alike (this machine's speed moved by up to
+1.3x between runs of one command; `mpg-bench compare` interleaves its methods
+the same way since the fourteenth session). This script takes the variants as
+JSON, checks them and prints the MSE less the reference's floor per variant.
 
     python bench/ab_params.py sphere --time 20 --seeds 4 --variants '{}' '{"chain_rate_min": 0.015625}'
     python bench/ab_params.py emitter_size_003 --param res=128 --time 10 --seeds 3 \\
@@ -61,10 +63,11 @@ def main() -> int:
     if any("=" not in p for p in args.param):
         ap.error("--param takes NAME=VALUE, e.g. res=128")
     params = dict(p.split("=", 1) for p in args.param)
-    known = render_mod.PATH_PARAMS | render_mod.CHAIN_PARAMS | render_mod.GUIDE_PARAMS
     for v in variants:
-        if set(v) - known:
-            ap.error(f"unknown mpg parameter(s) {sorted(set(v) - known)} in {json.dumps(v)}")
+        try:
+            render_mod.check_param_names("mpg", v)
+        except render_mod.RenderError as e:
+            ap.error(f"{json.dumps(v)}: {e}")
     loaded = load_scene(args.scene, params, "ab_params")
     if loaded is None:
         return 1

@@ -146,6 +146,37 @@ def test_boolean_parameters(text, expect):
     assert _as_bool("x", text) is expect
 
 
+@pytest.mark.parametrize("integ,key,hint", [("mpg", "chain_rat", "chain_rate"), ("path", "max_dept", "max_depth"),
+                                             ("sms_star", "bogus", None)])
+def test_an_unknown_parameter_is_an_error(integ, key, hint, scenes_dir):
+    """A name none of mpg's integrators has is an error, with the near names: a
+    typo in a dict would otherwise render the defaults with only a warning."""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="8")
+    with pytest.raises(RenderError, match=f"unknown parameter '{key}'") as e:
+        mpg.render(sc, integrator={"type": integ, key: 1}, spp=2, progress=False)
+    if hint:
+        assert f"did you mean {hint}" in str(e.value)
+
+
+def test_cli_rejects_an_unknown_parameter_and_keeps_the_scene_files(tmp_path, scenes_dir, capsys):
+    """-P with a typo stops before rendering; a scene file's integrator parameter
+    mpg does not know (another renderer's) still only warns."""
+    from mpg.cli import main
+    out = tmp_path / "a.exr"
+    rc = main([str(scenes_dir / "sphere_glass.xml"), "-D", "res=8", "--spp", "2", "-q", "-o", str(out),
+               "--integrator", "mpg", "-P", "chain_rat=1"])
+    assert rc != 0 and not out.exists()
+    assert "unknown parameter 'chain_rat'" in capsys.readouterr().err
+    text = (scenes_dir / "sphere_glass.xml").read_text()
+    i = text.index("<integrator")
+    j = text.index(">", i) + 1
+    scene = tmp_path / "s.xml"
+    scene.write_text(text[:j] + '<integer name="samples_per_pass" value="1"/>' + text[j:])
+    rc = main([str(scene), "-D", "res=8", "--spp", "2", "-q", "-o", str(out), "-P", "max_depth=6"])
+    assert rc == 0 and out.exists()
+    assert "ignores parameter(s) samples_per_pass" in capsys.readouterr().err
+
+
 def test_an_ignored_parameter_is_reported(scenes_dir):
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="8")
     img = mpg.render(sc, integrator={"type": "path", "tau": "TT"}, spp=2, progress=False)
@@ -158,6 +189,8 @@ def test_bench_entries_take_parameters():
     assert s.name == "mpg" and s.params == (("init", "photon"), ("product", "true"))
     assert s.label == "mpg/init=photon/product=true"
     assert parse_integrator("path").params == ()
+    with pytest.raises(BenchError, match="did you mean chain_rate"):
+        parse_integrator("mpg/chain_rat=1")
     with pytest.raises(BenchError, match="key=value"):
         parse_integrator("mpg/init")
 

@@ -105,10 +105,15 @@ def _run(args) -> int:
         integrator = args.integrator
         if args.iparams:
             base = args.integrator or scene.desc.integrator.type
-            integrator = {"type": base}
+            # a -P name no integrator of mpg has is an error (a typo would run the
+            # defaults); the scene file's own parameters only warn
+            from mpg.render import check_param_names
+            from mpg.scene.desc import IntegratorDesc
+            check_param_names(base, dict(args.iparams))
             if base == scene.desc.integrator.type:
-                integrator.update(scene.desc.integrator.params)
-            integrator.update(dict(args.iparams))
+                integrator = IntegratorDesc(base, {**scene.desc.integrator.params, **dict(args.iparams)})
+            else:
+                integrator = {"type": base, **dict(args.iparams)}
         img = mpg.render(scene, integrator=integrator, spp=args.spp, time=args.time,
                          seed=args.seed, threads=args.threads, sampler=args.sampler,
                          progress=False if args.quiet else None)

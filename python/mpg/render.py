@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 import math
 import signal
 import sys
@@ -74,6 +75,7 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
         params = {k: v for k, v in scene.desc.integrator.params.items() if k in PATH_PARAMS}
         params.update(integrator)
         name = params.pop("type", "path")
+        check_param_names(name, integrator.keys())
     else:
         raise RenderError(f"integrator must be a name or a dict, got {type(integrator).__name__}")
     if name == "manifold_path_guiding":
@@ -131,6 +133,26 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
     if dropped:
         warnings.append(f"integrator '{name}' ignores parameter(s) {', '.join(dropped)}")
     return name, core_params, warnings
+
+
+KNOWN_PARAMS = PATH_PARAMS | CHAIN_PARAMS | GUIDE_PARAMS
+
+
+def check_param_names(name: str, keys) -> None:
+    """Raise RenderError for a parameter name that none of mpg's own integrators
+    (path, sms, sms_star, mpg) has: a typo would otherwise run the defaults with
+    only a warning. For what a caller typed (a dict given to render, the CLI's -P);
+    a scene file's integrator may carry other renderers' parameters and only warns.
+    Names that another of mpg's integrators has still only warn ("ignores")."""
+    if name not in IMPLEMENTED:
+        return   # the papers' integrators (path_sms_ss, manifold_path_guiding, ...) keep their own names
+    for k in keys:
+        if k == "type" or k in KNOWN_PARAMS:
+            continue
+        close = difflib.get_close_matches(str(k), sorted(KNOWN_PARAMS), n=3, cutoff=0.6)
+        hint = f" (did you mean {' or '.join(close)}?)" if close else ""
+        raise RenderError(f"unknown parameter '{k}' for integrator '{name}'{hint}; "
+                          f"known: {', '.join(sorted(KNOWN_PARAMS))}")
 
 
 def _as_bool(name: str, v) -> bool:

@@ -62,6 +62,12 @@ def parse_integrator(text: str) -> IntegratorSpec:
         if not k or not eq:
             raise BenchError(f"'{t}': expected NAME/key=value/..., e.g. mpg/init=photon")
         params.append((k, v))
+    from mpg.errors import RenderError
+    from mpg.render import check_param_names
+    try:   # a typo is caught before any render of the run
+        check_param_names(name, [k for k, _ in params])
+    except RenderError as e:
+        raise BenchError(f"'{t}': {e}") from None
     return IntegratorSpec(t, "mpg", name, None, tuple(params))
 
 
