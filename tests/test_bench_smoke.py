@@ -120,6 +120,36 @@ def test_compare(env):
     assert "relMSE caustic" in text and "MSE − floor caustic" in text
 
 
+def test_compare_interleaves_the_methods(env, monkeypatch):
+    """Seeds outer, methods inner, the order rotated by one per seed, so a drift
+    of the machine's speed falls on every method alike; results keep the
+    methods' order, and a method that fails is skipped without stopping the others."""
+    from mpg.bench import compare
+    from mpg.errors import RenderError
+
+    calls = []
+    real = compare.run_timed
+
+    def spy(spec, sc, times, seed, threads=None):
+        calls.append((seed, spec.text))
+        if spec.text == "sms":
+            raise RenderError("refused for the test")
+        return real(spec, sc, times, seed=seed, threads=threads)
+
+    monkeypatch.setattr(compare, "run_timed", spy)
+    out = env["dir"] / "compare_order"
+    assert cli.main(["compare", "--scenes", env["scene"], "--param", "res=24", "--integrators",
+                     "path", "sms", "sms_star", "--time", "0.1", "--seeds", "3", "--cache", env["cache"],
+                     "--out", str(out)]) == 0
+    assert calls == [(0, "path"), (0, "sms"), (0, "sms_star"), (1, "sms_star"), (1, "path"),
+                     (2, "sms_star"), (2, "path")]
+    data, _ = check_out(out, [])
+    (sc,) = data["scenes"]
+    assert [m["integrator"] for m in sc["methods"]] == ["path", "sms_star"]
+    assert [r["seed"] for r in sc["methods"][0]["runs"]] == [0, 1, 2]
+    assert sc["skipped"] == [{"integrator": "sms", "reason": "refused for the test"}]
+
+
 def test_curves(env):
     out = env["dir"] / "curves"
     integ = ["path"] + (["mitsuba:ptracer"] if HAS_MI else [])

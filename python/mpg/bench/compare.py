@@ -78,7 +78,8 @@ def run(scenes: list[BenchScene], specs: list[IntegratorSpec], time: float, seed
     results: dict[str, Any] = {"command": report.command_line(argv), "time": time,
                                "seeds": seeds, "scenes": []}
     md = [report.header("Equal-time comparison", argv),
-          (f"Budget {time:g} s per render, {seeds} seed(s) per method; errors are mean ± "
+          (f"Budget {time:g} s per render, {seeds} seed(s) per method, the methods run in "
+           "turn per seed (order rotated by one per seed); errors are mean ± "
            "sample standard deviation over the seeds (one seed: no spread). Metrics: "
            "docs/results.md.\n")]
     for sc in scenes:
@@ -89,38 +90,53 @@ def run(scenes: list[BenchScene], specs: list[IntegratorSpec], time: float, seed
                                 "reference": _ref_summary(ref_info, ref, ref_var, box),
                                 "methods": [], "skipped": []}
         shown: list[tuple[str, np.ndarray, str]] = []
+        active = []
         for spec in specs:
             why = skip_reason(spec)
             if why:
                 log(f"mpg-bench: skipping {spec.text}: {why}")
                 srec["skipped"].append({"integrator": spec.text, "reason": why})
-                continue
-            runs = []
-            try:
-                for s in range(seeds):
+            else:
+                active.append(spec)
+        # Seeds outer, methods inner in an order rotated by one per seed (A B C,
+        # B C A, ...): a drift of the machine's speed during the run (up to 1.3x
+        # between runs here) falls on every method alike.
+        runs: dict[str, list[dict[str, Any]]] = {spec.text: [] for spec in active}
+        firsts: dict[str, Any] = {}
+        failed: dict[str, str] = {}
+        for s in range(seeds):
+            k = s % len(active) if active else 0
+            for spec in active[k:] + active[:k]:
+                if spec.text in failed:
+                    continue
+                try:
                     (r,) = run_timed(spec, sc, [time], seed=s, threads=threads)
                     if r.rgb.shape != ref.shape:
                         raise BenchError(f"{spec.text}: image {r.rgb.shape} but reference "
                                          f"{ref.shape}")
-                    rec = error_record(r, ref, box)
-                    rec.update(seed=s, stats=r.stats)
-                    runs.append(rec)
-                    log(f"[compare] {sc.label} {spec.text} seed {s}: {r.seconds:.2f} s, "
-                        f"{r.spp} spp, relMSE {rec['metrics']['image']['relmse']:.4g}")
-                    if s == 0:
-                        first = r
-            except MPGError as e:
-                log(f"mpg-bench: skipping {spec.text} on {sc.label}: {e}")
-                srec["skipped"].append({"integrator": spec.text, "reason": str(e)})
+                except MPGError as e:
+                    log(f"mpg-bench: skipping {spec.text} on {sc.label}: {e}")
+                    failed[spec.text] = str(e)
+                    continue
+                rec = error_record(r, ref, box)
+                rec.update(seed=s, stats=r.stats)
+                runs[spec.text].append(rec)
+                log(f"[compare] {sc.label} {spec.text} seed {s}: {r.seconds:.2f} s, "
+                    f"{r.spp} spp, relMSE {rec['metrics']['image']['relmse']:.4g}")
+                if s == 0:
+                    firsts[spec.text] = r
+        for spec in active:
+            if spec.text in failed:
+                srec["skipped"].append({"integrator": spec.text, "reason": failed[spec.text]})
                 continue
-            summ = summarise(runs)
+            summ = summarise(runs[spec.text])
             summ["mse_above_floor"] = above_floor(summ, srec["reference"]["convergence"])
-            srec["methods"].append({"integrator": spec.text, "runs": runs, "summary": summ})
-            m0 = runs[0]["metrics"]
+            srec["methods"].append({"integrator": spec.text, "runs": runs[spec.text], "summary": summ})
+            m0 = runs[spec.text][0]["metrics"]
             label = f"relMSE {report.fmt(m0['image']['relmse'])}"
             if m0["caustic"] is not None:
                 label += f"\ncaustic {report.fmt(m0['caustic']['relmse'])}"
-            shown.append((spec.text, first.rgb, label))
+            shown.append((spec.text, firsts[spec.text].rgb, label))
         png = f"compare-{_safe(sc.label)}.png"
         report.side_by_side(os.path.join(out, png), f"{sc.label}: equal time {time:g} s",
                             ref, shown, box, exposure)
