@@ -5,6 +5,8 @@ tracer").
 
     python bench/crop_variance.py sphere --center 157 147 --integrators path sms_star mpg mpg/chain_handoff=false
     python bench/crop_variance.py double_slabs --center 127 115 --spp 256
+    python bench/crop_variance.py sphere --center 155 147 --half 6 --spp 4096 --integrators path \
+        --sampler stratified --out bench/results/crop_variance-sphere-focus-stratified.json
 
 For each integrator: the crop's mean per-sample variance (the image variance x
 spp), the seconds per sample per pixel, and their product (lower is better).
@@ -37,6 +39,9 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--integrators", nargs="+", default=["path", "sms_star", "mpg"],
                     help="names, with parameters as in mpg-bench: mpg/chain_handoff=false")
+    ap.add_argument("--sampler", choices=("independent", "stratified"), default=None,
+                    help="pixel positions (default: the scene's)")
+    ap.add_argument("--out", default=None, help="result file (default bench/results/crop_variance-SCENE.json)")
     args = ap.parse_args()
     (cx, cy), h = args.center, args.half
     path = ROOT / "scenes" / "eval" / f"{args.scene}.xml"
@@ -48,11 +53,12 @@ def main() -> int:
         t0 = time.monotonic()
         integ, *kv = name.split("/")
         img = mpg.render(sc, dict(type=integ, **dict(x.split("=", 1) for x in kv)), spp=args.spp,
-                         seed=args.seed, progress=False)
+                         seed=args.seed, progress=False, sampler=args.sampler)
         sec = time.monotonic() - t0
         var = float((img.variance * img.spp).mean())
         per = sec / img.spp / (4 * h * h)
-        out["integrators"][name] = {"spp": img.spp, "seconds": sec, "variance_per_sample": var,
+        out["integrators"][name] = {"spp": img.spp, "seconds": sec, "mean": float(img.rgb.mean()),
+                                    "variance_per_sample": var,
                                     "seconds_per_sample": per, "variance_x_time": var * per}
         print(f"{name:10s} {img.spp:5d} spp  per-sample variance {var:10.4g}  "
               f"{1e6 * per:8.2f} us/sample  product {var * per:.4g}")
@@ -69,7 +75,10 @@ def main() -> int:
     print(f"sms_star: chains' E[X^2] / a sample's variance = {share:.3g}")
     res = ROOT / "bench" / "results"
     res.mkdir(parents=True, exist_ok=True)
-    (res / f"crop_variance-{args.scene}.json").write_text(json.dumps(out, indent=2))
+    dest = pathlib.Path(args.out) if args.out else res / f"crop_variance-{args.scene}.json"
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    dest.write_text(json.dumps(out, indent=2))
+    print(f"wrote {dest}")
     return 0
 
 

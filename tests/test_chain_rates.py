@@ -375,3 +375,84 @@ def test_bad_chain_rate_settings_are_clear_errors(scenes_dir):
                         ({"type": "mpg", "chain_rate": "auto", "guide": None}, "chain_rate")):
         with pytest.raises(mpg.RenderError, match=msg):
             mpg.render(sc, integrator=params, spp=4, seed=1, progress=False)
+
+
+def _trained_guide(sc, spp=64, seed=5):
+    """A guide from one recording pass of the estimator at every separator."""
+    core = sc.core
+    job = _core.RenderJob(core, _core.make_integrator(core, "mpg", {"record": True, "chain_rate": 1.0}),
+                          spp, seed, 0, 0)
+    while not job.wait(0.05):
+        pass
+    buf = job.result()["subpaths"]
+    assert len(buf) > 100
+    g = _core.GuidingState()
+    bmin, bmax = core.bbox
+    g.build_from([buf], bmin, bmax, c=1.0, epsilon=0.1, threads=2)
+    return g
+
+
+@pytest.mark.parametrize("scene,k", [("sphere_glass.xml", 4), ("slab_glass.xml", 1)])
+def test_the_guided_trace_of_handed_pixels_keeps_the_image_unbiased(scenes_dir, scene, k):
+    """handoff_guided = k: in pixels of rate 0, k directions drawn from the
+    leaf, traced through their letters to the light, share the chain paths with
+    the path tracer by the balance heuristic k g / (b + k g) and b / (b + k g). A map
+    with half the pixels at 0 (the rest in [0.05, 1]) agrees with the path
+    tracer (|z| < 5 on the image and nine regions, p < 6e-7 each), and the
+    traces found the light."""
+    sc = mpg.load_file(scenes_dir / scene, res="24")
+    guide = _trained_guide(sc)
+    rng = np.random.default_rng(17)
+    qmap = np.exp(rng.uniform(np.log(0.05), 0.0, (24, 24))).astype(np.float32)
+    qmap[rng.random((24, 24)) < 0.5] = 0.0
+    ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
+    img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": k},
+                     spp=1024, seed=13, progress=False, chain_rate_map=qmap)
+    st = img.stats
+    assert st["chain_handed"] > 0 and st["guided_traces"] > 0
+    assert st["guided_trace_hits"] > 0.01 * st["guided_traces"]
+    assert st["rejected_samples"] == 0
+    assert image_zmax(img, ref, REGIONS_24) < 5
+
+
+def test_the_guided_trace_is_off_by_default_and_outside_rate_zero(scenes_dir):
+    """Without handoff_guided, or in pixels of rate > 0, nothing is traced: the
+    image is the one without the option, bit for bit."""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
+    guide = _trained_guide(sc, spp=16)
+    base = {"type": "mpg", "guide": guide, "chain_rate": 1.0}
+    half = np.full((16, 16), 0.5, np.float32)
+    zero = np.zeros((16, 16), np.float32)
+    a = mpg.render(sc, integrator=base, spp=8, seed=3, progress=False, chain_rate_map=half)
+    b = mpg.render(sc, integrator=dict(base, handoff_guided=True), spp=8, seed=3, progress=False, chain_rate_map=half)
+    assert np.array_equal(a.rgb, b.rgb) and b.stats["guided_traces"] == 0
+    c = mpg.render(sc, integrator=base, spp=8, seed=3, progress=False, chain_rate_map=zero)
+    assert c.stats["guided_traces"] == 0
+    d = mpg.render(sc, integrator=dict(base, handoff_guided=True), spp=8, seed=3, progress=False, chain_rate_map=zero)
+    assert d.stats["guided_traces"] > 0 and not np.array_equal(c.rgb, d.rgb)
+    # ... and a guided_trace_map of zeros switches it off per pixel
+    e = mpg.render(sc, integrator=dict(base, handoff_guided=True), spp=8, seed=3, progress=False, chain_rate_map=zero,
+                   guided_trace_map=zero)
+    assert e.stats["guided_traces"] == 0 and np.array_equal(c.rgb, e.rgb)
+    with pytest.raises(mpg.RenderError, match="guided_trace_map"):
+        mpg.render(sc, integrator=dict(base, handoff_guided=True), spp=1, progress=False, chain_rate_map=zero,
+                   guided_trace_map=np.full((16, 16), 0.5, np.float32))
+
+
+def test_the_guided_trace_map_leaves_out_negligible_chain_light():
+    """guided_trace_map: on where the window's chain second moment is above
+    `negligible` of the pixel's variance per sample, off where the pixel's
+    noise is other light (a glint) and the chains add next to nothing."""
+    from mpg.chain_rates import guided_trace_map
+    acc = CostAccumulator((12, 12))
+    n = 100
+    acc.n = n
+    mean = np.full((12, 12, 3), 1.0)
+    var = np.full((12, 12, 3), 4.0)
+    var[:, 6:] = 400.0            # the right half: glints
+    acc.sum[...] = mean * n
+    acc.sum_sq[...] = (var + mean ** 2) * n
+    acc.chain_m2[...] = 0.1 * n   # the same chain light everywhere
+    g = guided_trace_map(acc, radius=1, negligible=1e-3)   # 0.1 against 4e-3 and 0.4
+    assert g.dtype == np.float32
+    assert np.all(g[:, :6] == 1.0) and np.all(g[:, 6:] == 0.0)

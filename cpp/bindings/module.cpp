@@ -232,6 +232,8 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
       cp.guide_fraction = get<float>(p, "guide_fraction", cp.guide_fraction);
       cp.selective = get<bool>(p, "selective", cp.selective);
       cp.known_types = get<bool>(p, "known_types", cp.known_types);
+      cp.handoff_guided = get<int>(p, "handoff_guided", cp.handoff_guided);
+      if (cp.handoff_guided < 0 || cp.handoff_guided > 64) throw std::invalid_argument("handoff_guided must be in 0..64");
       cp.record = get<bool>(p, "record", false);
       cp.guide_n = get<bool>(p, "guide_n", true);
       cp.guide_tau = get<bool>(p, "guide_tau", true);
@@ -651,7 +653,7 @@ PYBIND11_MODULE(_core, m) {
       .def(py::init([](std::shared_ptr<Scene> scene, std::shared_ptr<Integrator> integ, int spp, uint64_t seed,
                        uint64_t pass, int threads, py::object chain_rate_map, bool record_costs,
                        py::object delta_split_map, py::object pixel_split_map, bool stratify,
-                       uint64_t sample_offset) {
+                       uint64_t sample_offset, py::object guided_trace_map) {
         if (!scene->committed()) throw std::runtime_error("scene not committed");
         if (spp < 1) throw std::invalid_argument("spp must be >= 1");
         PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
@@ -686,13 +688,19 @@ PYBIND11_MODULE(_core, m) {
             throw std::invalid_argument("pixel_split_map cannot be used with record_costs");
           cfg.pixel_split_map = std::move(m);
         }
+        if (!guided_trace_map.is_none()) {
+          auto m = pixel_map(guided_trace_map, scene->camera, "guided_trace_map");
+          for (float v : *m)
+            if (!(v == 0.f || v == 1.f)) throw std::invalid_argument("guided_trace_map values must be 0 or 1");
+          cfg.guided_trace_map = std::move(m);
+        }
         auto job = std::make_shared<RenderJob>(scene, integ, cfg);
         job->start();
         return job;
       }), py::arg("scene"), py::arg("integrator"), py::arg("spp"), py::arg("seed") = 0, py::arg("pass_index") = 0,
          py::arg("threads") = 0, py::arg("chain_rate_map") = py::none(), py::arg("record_costs") = false,
          py::arg("delta_split_map") = py::none(), py::arg("pixel_split_map") = py::none(),
-         py::arg("stratify") = false, py::arg("sample_offset") = 0)
+         py::arg("stratify") = false, py::arg("sample_offset") = 0, py::arg("guided_trace_map") = py::none())
       .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
       .def("cancel", &RenderJob::cancel)
       .def_property_readonly("progress", &RenderJob::progress)

@@ -251,8 +251,15 @@ float ChainDistribution::pdf_dir(int n, uint16_t tau, const Vec3& dir) const {
   if (t < 0) return 0.f;
   const Type& ty = types_[size_t(t)];
   double p = 0.0;
-  for (uint32_t i = ty.first; i < ty.first + ty.count; ++i)
-    p += double(lobe_pmf_[i]) * warp::vmf_pdf_cos(double(glm::dot(lobes_[i].mu, dir)), double(lobes_[i].kappa));
+  for (uint32_t i = ty.first; i < ty.first + ty.count; ++i) {
+    // A lobe whose exponent is below -40 adds less than e^-40 of its peak: left
+    // out (the guided trace evaluates this for every path it shares, over all
+    // of a leaf's lobes; the skip makes most of them a dot product).
+    const double c = double(glm::dot(lobes_[i].mu, dir));
+    const double k = double(lobes_[i].kappa);
+    if (k * (1.0 - std::min(c, 1.0)) > 40.0) continue;
+    p += double(lobe_pmf_[i]) * warp::vmf_pdf_cos(c, k);
+  }
   return float(p);
 }
 

@@ -21,6 +21,10 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   thread_local std::vector<SurfaceInteraction> chain_si;  // the chain's vertices (for the MIS weight)
   chain_si.clear();
   bool chain_ok = false;
+  // separators before this vertex; the guided trace of handed-off pixels runs
+  // at the first one only (both its sides: the trace and the path tracer's weight)
+  uint32_t seps = 0;
+  bool sep_first = false;
   // every BSDF sample so far delta (PathParams::camera_delta)
   bool delta_prefix = true;
   const bool cd_only = mode == PathParams::CameraDelta::Only;
@@ -73,6 +77,13 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
             st.owned_dropped++;
           }
         }
+      } else if (chains_ && chain_ok && !tau.empty() && sep_first && st.pixel_chain_rate == 0.f &&
+                 st.pixel_guided_trace && chains_->guided_trace_on()) {
+        // A handed-off pixel's chain path: shared with the guided trace by the
+        // balance heuristic (ChainEstimator::guided_trace)
+        if (!is_black(Le))
+          L += beta * Le * chains_->guided_trace_pt_weight(sep_si, sep_ctx, sep_depth, max_depth, chain_si.data(),
+                                                           tau, si, st);
       } else if (!is_black(Le)) {
         const float w = prev_delta ? 1.f : power_heuristic(prev_pdf, scene.pdf_emitter_hit(prev_p, si));
         add(beta * Le * w);
@@ -119,6 +130,8 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       const float q = chains_->rate_at(st);
       if (q <= 0.f) {
         st.chain_handed++;
+        if (seps == 0 && st.pixel_guided_trace && chains_->guided_trace_on())
+          L += beta * chains_->guided_trace(si, ctx, depth, max_depth, rng, st);
       } else if (q >= 1.f || rng.next_float() < q) {
         const Color X = beta * chains_->estimate(si, ctx, depth, max_depth, rng, st, beta);
         L += X * (1.f / q);
@@ -146,6 +159,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
     if (chains_) {
       if (separator) {
         sep_depth = depth;
+        sep_first = seps == 0;
         sep_si = si;
         sep_ctx = ctx;
         tau.clear();
@@ -163,6 +177,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         }
       }
     }
+    if (separator) ++seps;
     prev_p = si.p;
     prev_pdf = bs.pdf;
     prev_delta = bs.delta || chain_vertex;

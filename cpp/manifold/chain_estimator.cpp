@@ -97,6 +97,24 @@ ChainEstimator::ChainEstimator(const Scene& scene, ChainParams p)
   light_dist_.build(w);
   light_index_.assign(scene.emitters.size(), -1);
   for (size_t k = 0; k < chain_lights_.size(); ++k) light_index_[size_t(chain_lights_[k])] = int(k);
+  // The guided trace's leaf is the one of (x_D, the light's centroid): the mean
+  // of a 16 x 16 grid of its area samples (any fixed point of the light would do).
+  light_centre_.assign(chain_lights_.size(), Vec3(0.f));
+  for (size_t k = 0; k < chain_lights_.size(); ++k) {
+    const Emitter& em = scene.emitters[size_t(chain_lights_[k])];
+    if (em.type != Emitter::Type::Area) {
+      light_centre_[k] = em.position;
+      continue;
+    }
+    DVec3 c(0.0);
+    for (int i = 0; i < 16; ++i)
+      for (int j = 0; j < 16; ++j) {
+        Vec3 q, nq;
+        scene.shapes[size_t(em.shape)].sample_position(Vec2((float(i) + 0.5f) / 16.f, (float(j) + 0.5f) / 16.f), q, nq);
+        c += to_d(q);
+      }
+    light_centre_[k] = to_f(c / 256.0);
+  }
   // Effects follow the scene: no specular caster or no chain emitter, no work.
   active_ = !seed_dist_.empty() && !light_dist_.empty();
   if (p_.mode == ChainParams::Mode::Sms && p_.tau.empty()) active_ = false;
@@ -651,6 +669,120 @@ bool ChainEstimator::mis_pair(const Vec3& o, const Vec3& d, const Vec3& omega_D,
   ab[0] = area_light_pdf(size_t(light_index_[size_t(emitter)])) * pn_at(guide_at(sep.p, light.p, nullptr), int(tau.size()), max_len(0, uint32_t(-1)));
   ab[1] = pt_density(c, tau, ctx, sep.wi, G);
   return true;
+}
+
+double ChainEstimator::guided_trace_pdf(const Vec3& xD, size_t k, int n, uint16_t bits, const Vec3& wD, int nmax,
+                                        Stats* st) const {
+  if (n < 1 || n > nmax || scene_.emitters[size_t(chain_lights_[k])].type != Emitter::Type::Area) return 0.0;
+  const ChainDistribution* leaf = guide_at(xD, light_centre_[k], st);
+  if (!leaf) return 0.0;
+  return double(light_dist_.pmf(k)) * double(leaf->pmf_n(n)) * double(leaf->pmf_tau(n, bits)) *
+         double(leaf->pdf_dir(n, bits, wD));
+}
+
+Color ChainEstimator::guided_trace(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
+                                   uint32_t max_depth, PCG32& rng, Stats& st) const {
+  // k traces, each weighted by the balance heuristic of k samples of density g
+  // against the path tracer's one of density b (Veach's multi-sample form):
+  // f / (b + k g) each
+  Color sum(0.f);
+  for (int j = 0; j < p_.handoff_guided; ++j) sum += guided_trace_one(si, ctx, depth, max_depth, rng, st);
+  return sum;
+}
+
+Color ChainEstimator::guided_trace_one(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
+                                       uint32_t max_depth, PCG32& rng, Stats& st) const {
+  // Draws: the light k by power, (n, tau, omega_D) from the leaf of (x_D, its
+  // centre); then the ray follows tau's letters through delta vertices of chain
+  // shapes (each lobe forced, weighted by its probability as in delta_tree) and
+  // must end on light k. Its density g per solid angle at x_D (and letter
+  // choice) is guided_trace_pdf; the path tracer's b = pdf_bsdf(omega_D) times
+  // its Fresnel choices (pt_letters_pdf's rule). Balance heuristic:
+  // contribution = throughput * Le / (b + g). The random numbers are drawn up
+  // front, a fixed count per call.
+  const int nmax = max_len(depth, max_depth);
+  float u_light = rng.next_float();  // (sample() reuses it)
+  const float u_n = rng.next_float(), u_t = rng.next_float();
+  const double u_lobe = rng.next_double();
+  const Vec2 u_dir(rng.next_float(), rng.next_float());
+  if (nmax < 1) return Color(0.f);
+  const size_t k = light_dist_.sample(u_light);
+  const Emitter& em = scene_.emitters[size_t(chain_lights_[k])];
+  if (em.type != Emitter::Type::Area) return Color(0.f);
+  const ChainDistribution* leaf = guide_at(si.p, light_centre_[k], &st);
+  if (!leaf) return Color(0.f);
+  st.guided_traces++;
+  const int n = leaf->sample_n(u_n);
+  if (n < 1 || n > nmax) return Color(0.f);
+  const int t = leaf->sample_type(n, u_t);
+  Vec3 wD;
+  if (t < 0 || !leaf->sample_dir_of(t, u_lobe, u_dir, wD)) return Color(0.f);
+  const uint16_t bits = leaf->type_tau(t);
+  const Color f = scene_.bsdfs.eval(ctx, si.wi, wD);
+  if (is_black(f)) return Color(0.f);
+  Color thr = f;
+  double letters = 1.0;
+  Vec3 o = si.p, ng = si.ng, d = wD;
+  SurfaceInteraction h;
+  for (int i = 0; i <= n; ++i) {
+    st.rays++;
+    h = scene_.intersect(offset_ray_origin(o, ng, d), d, 0.f, kInf);
+    if (!h.valid) return Color(0.f);
+    if (i == n) break;
+    if (!is_chain_shape(h.shape)) return Color(0.f);
+    const BSDFContext c = scene_.bsdfs.resolve(scene_.shapes[size_t(h.shape)].bsdf, h);
+    if (!c.leaf || !c.leaf->is_delta()) return Color(0.f);
+    const bool want_r = (bits >> i) & 1u;
+    Vec3 wo;
+    const BSDFSample bs = scene_.bsdfs.sample(c, h.wi, want_r ? 0.f : 1.f, Vec2(0.5f), wo);
+    if (!(bs.pdf > 0.f) || !bs.delta || bs.null || bs.transmission == want_r || is_black(bs.weight))
+      return Color(0.f);
+    thr *= bs.weight * bs.pdf;
+    letters *= double(bs.pdf);
+    o = h.p;
+    ng = h.ng;
+    d = wo;
+  }
+  if (scene_.shapes[size_t(h.shape)].emitter != chain_lights_[k]) return Color(0.f);
+  const Color Le = scene_.emitted(h);
+  if (is_black(Le)) return Color(0.f);
+  // guided_trace_pdf with the leaf already at hand (the same leaf: the same x_D and centre)
+  const double g = double(light_dist_.pmf(k)) * double(leaf->pmf_n(n)) * double(leaf->pmf_tau(n, bits)) *
+                   double(leaf->pdf_dir(n, bits, wD));
+  const double b = double(scene_.bsdfs.pdf(ctx, si.wi, wD)) * letters;
+  if (!(g > 0.0) || !std::isfinite(b + g)) return Color(0.f);
+  st.guided_trace_hits++;
+  return thr * Le * float(1.0 / (std::max(b, 0.0) + double(p_.handoff_guided) * g));
+}
+
+float ChainEstimator::guided_trace_pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx,
+                                             uint32_t sep_depth, uint32_t max_depth,
+                                             const SurfaceInteraction* verts, const std::string& tau,
+                                             const SurfaceInteraction& light, Stats& st) const {
+  const int emitter = scene_.shapes[size_t(light.shape)].emitter;
+  if (emitter < 0 || light_index_[size_t(emitter)] < 0) return 1.f;
+  const int n = int(tau.size());
+  if (n < 1 || n > ChainDistribution::kMaxN) return 1.f;
+  // The letters' probabilities as the path tracer drew them (Fresnel at
+  // dielectrics, 1 at conductors), the same numbers guided_trace multiplies
+  // into its b; a vertex the guided trace cannot pass (not delta) gives g = 0.
+  double letters = 1.0;
+  for (int i = 0; i < n; ++i) {
+    const SurfaceInteraction& v = verts[i];
+    const BSDFContext c = scene_.bsdfs.resolve(scene_.shapes[size_t(v.shape)].bsdf, v);
+    if (!c.leaf || !c.leaf->is_delta()) return 1.f;
+    Vec3 wo;
+    const BSDFSample bs = scene_.bsdfs.sample(c, v.wi, tau[size_t(i)] == 'R' ? 0.f : 1.f, Vec2(0.5f), wo);
+    if (!(bs.pdf > 0.f) || !bs.delta || bs.null || bs.transmission != (tau[size_t(i)] == 'T')) return 1.f;
+    letters *= double(bs.pdf);
+  }
+  const Vec3 wD = glm::normalize(verts[0].p - sep.p);
+  const double g = guided_trace_pdf(sep.p, size_t(light_index_[size_t(emitter)]), n, tau_bits(tau.data(), n), wD,
+                                    max_len(sep_depth, max_depth), &st);
+  if (!(g > 0.0)) return 1.f;
+  const double b = double(scene_.bsdfs.pdf(sep_ctx, sep.wi, wD)) * letters;
+  const double w = b / (b + double(p_.handoff_guided) * g);
+  return std::isfinite(w) ? float(w) : 0.f;
 }
 
 Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,

@@ -93,6 +93,14 @@ struct ChainParams {
   // when the leaf holds a sample of its type (n, tau); the path tracer owns the
   // others whole (design-notes, "Chain types the training never saw").
   bool known_types = false;
+  // In pixels of rate 0 (handed to the path tracer), a second path-tracer
+  // technique at each separator: omega_D and the letters drawn from the leaf of
+  // (x_D, the light's centre) and traced through the chain, combined with the
+  // BSDF-sampled paths by the balance heuristic (design-notes, "The guided
+  // trace of handed-off pixels").
+  // The count k of traces per separator (0: off); the balance heuristic then
+  // weighs k g against b.
+  int handoff_guided = 0;
   bool record = false;             // store SubpathSamples in Stats::subpaths
   bool count_limits = false;       // Stats::limit_m2 / limit_steps (mpg's training, step_halvings=auto)
   bool product = false;            // product sampling with the separator's BSDF (MPG Eq. 14)
@@ -186,6 +194,24 @@ class ChainEstimator {
                   const SurfaceInteraction& light, PCG32& rng, Stats& st,
                   const Color& unit = Color(0.f), const LeafQuery* known = nullptr) const;
 
+  // handoff_guided (rate-0 pixels): does the technique run here?
+  bool guided_trace_on() const { return p_.handoff_guided > 0 && p_.guide && p_.guide->valid() && active_; }
+  // Its sample at the separator `si`: the light it finds through the chain,
+  // weighted by the balance heuristic g / (b + g) against the path tracer's
+  // BSDF sampling (f_s |cos| included; times the path's throughput by the caller).
+  Color guided_trace(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth, uint32_t max_depth,
+                     PCG32& rng, Stats& st) const;
+  // The path tracer's weight b / (b + g) for a path it traced from the
+  // separator through the chain vertices `verts` (letters `tau`) to the
+  // emitter hit `light`, in a rate-0 pixel (1 where the guided trace cannot
+  // produce the path).
+  // One of guided_trace's k traces.
+  Color guided_trace_one(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth, uint32_t max_depth,
+                         PCG32& rng, Stats& st) const;
+  float guided_trace_pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx, uint32_t sep_depth,
+                               uint32_t max_depth, const SurfaceInteraction* verts, const std::string& tau,
+                               const SurfaceInteraction& light, Stats& st) const;
+
   // Test entry point: the densities a (estimator, without P) and b (path
   // tracer) of one path as each side computes them. The path tracer's path
   // runs from the camera ray (o, d) to its first hit x_D, then along omega_D
@@ -254,6 +280,11 @@ class ChainEstimator {
                     const LeafQuery* known = nullptr) const;
   // Density per unit area of x_L on chain light k (area light): selection by power times 1/area.
   double area_light_pdf(size_t k) const;
+  // The guided trace's density of a path (n, letters `bits`, omega_D) at x_D to
+  // chain light k: P(k) P_e(n) P_e(tau | n) pdf(omega_D), the leaf at (x_D,
+  // light_centre_[k]); 0 where it cannot draw it.
+  double guided_trace_pdf(const Vec3& xD, size_t k, int n, uint16_t bits, const Vec3& wD, int nmax,
+                          Stats* st) const;
   // K' of the MIS-aware Bernoulli process: each round, with probability beta a
   // trial that succeeds iff it finds (tau*, omega*), otherwise an immediate
   // success; E[K'] = 1 / (beta P + 1 - beta). beta = 1: SMS's K, E = 1/P.
@@ -285,6 +316,7 @@ class ChainEstimator {
   bool has_delta_lights_ = false;
   DiscreteDistribution light_dist_;  // by power
   std::vector<int> light_index_;     // emitter -> index in chain_lights_, or -1
+  std::vector<Vec3> light_centre_;   // per chain light: its centroid (area lights; the guided trace's leaf)
 };
 
 }  // namespace mpg

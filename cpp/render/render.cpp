@@ -62,6 +62,8 @@ void RenderJob::run() {
   }
   const std::vector<float>* qmap = cfg_.chain_rate_map.get();
   if (qmap && qmap->size() != size_t(W) * H) qmap = nullptr;  // checked by the bindings
+  const std::vector<float>* gmap = cfg_.guided_trace_map.get();
+  if (gmap && gmap->size() != size_t(W) * H) gmap = nullptr;
   const std::vector<float>* kmap = cfg_.delta_split_map.get();
   if (kmap && kmap->size() != size_t(W) * H) kmap = nullptr;
   const std::vector<float>* smap = cfg_.pixel_split_map.get();
@@ -110,6 +112,7 @@ void RenderJob::run() {
           double s[3] = {0, 0, 0}, s2[3] = {0, 0, 0}, a[3] = {0, 0, 0}, a2[3] = {0, 0, 0}, hits = 0;
           double ds[3] = {0, 0, 0}, ds2[3] = {0, 0, 0};
           st.pixel_chain_rate = qmap ? (*qmap)[size_t(y) * W + x] : -1.f;
+          st.pixel_guided_trace = gmap ? (*gmap)[size_t(y) * W + x] > 0.5f : true;
           st.pixel_chain_m2 = 0.0;
           const int ksplit = kmap ? std::max(1, int((*kmap)[size_t(y) * W + x])) : 1;
           st.split_delta = ksplit > 1;

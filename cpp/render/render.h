@@ -56,6 +56,10 @@ struct PassConfig {
   // everywhere): each sample of the pixel is the mean of k independent camera
   // samples (camera ray, Li, delta split), so its variance is 1/k of one.
   std::shared_ptr<const std::vector<float>> pixel_split_map;
+  // Per-pixel switch of the guided trace in pixels of rate 0 (crop height x
+  // width, 0 or 1; ChainParams::handoff_guided), or null (on wherever the
+  // integrator has it on).
+  std::shared_ptr<const std::vector<float>> guided_trace_map;
   bool record_costs = false;
   // Pixel positions from a per-pixel randomly shifted Sobol (0,2)-sequence
   // (core/rng.h shifted_sobol_2d) instead of independent random numbers; the

@@ -29,6 +29,7 @@ struct Stats {
   // RGB): an unbiased estimate of the second moment the roulette multiplies by
   // (1/q - 1) (design-notes "Chain rates per pixel").
   float pixel_chain_rate = -1.f;
+  bool pixel_guided_trace = true;   // PassConfig::guided_trace_map at the pixel
   double pixel_chain_m2 = 0.0;
   // Per camera sample (reset by the render worker): what the sample's value
   // would change by if the path tracer kept the chain paths whole and no chain
@@ -98,6 +99,8 @@ struct Stats {
   uint64_t chain_inactive = 0;       // separators skipped by selective activation
   uint64_t chain_skipped = 0;        // separators skipped by the roulette (chain_rate < 1)
   uint64_t chain_handed = 0;         // separators in pixels of rate 0 (the path tracer's light whole)
+  uint64_t guided_traces = 0;        // handoff_guided: traces drawn from a leaf in rate-0 pixels
+  uint64_t guided_trace_hits = 0;    // ... that reached their light through the drawn letters
   std::vector<SubpathSample> subpaths;  // recorded in training passes
   // the largest chain estimate (luminance) and its factors: where the heavy tail comes from
   double max_chain_value = 0.0, max_chain_K = 0.0, max_chain_G = 0.0, max_chain_pn = 0.0,
@@ -131,6 +134,8 @@ struct Stats {
     chain_inactive += o.chain_inactive;
     chain_skipped += o.chain_skipped;
     chain_handed += o.chain_handed;
+    guided_traces += o.guided_traces;
+    guided_trace_hits += o.guided_trace_hits;
     subpaths.insert(subpaths.end(), o.subpaths.begin(), o.subpaths.end());
     if (o.max_chain_value > max_chain_value) {
       max_chain_value = o.max_chain_value; max_chain_K = o.max_chain_K; max_chain_G = o.max_chain_G;
@@ -159,6 +164,8 @@ struct Stats {
             {"chain_inactive", double(chain_inactive)}, {"chain_unknown_type", double(chain_unknown_type)},
             {"chain_skipped", double(chain_skipped)},
             {"chain_handed", double(chain_handed)},
+            {"guided_traces", double(guided_traces)},
+            {"guided_trace_hits", double(guided_trace_hits)},
             {"subpath_samples", double(subpaths.size())},
             {"max_chain_value", max_chain_value}, {"max_chain_K", max_chain_K},
             {"max_chain_G", max_chain_G}, {"max_chain_pn", max_chain_pn},

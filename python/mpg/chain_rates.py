@@ -481,3 +481,21 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
                 pixel_split_mean=float(np.mean(k[split])) if np.any(split) else 1.0,
                 pixel_split_cost=float(np.mean(k * c) / np.mean(c)))
     return k.astype(np.float32), info
+
+
+def guided_trace_map(acc: CostAccumulator, radius: int = 3,
+                     negligible: float = HANDOFF_NEGLIGIBLE) -> np.ndarray:
+    """Where the guided trace of handed-off pixels runs (handoff_guided; 1 or 0
+    per pixel): where the chains' light is not negligible, i.e. the window's
+    second moment of the chain estimates above `negligible` of the pixel's own
+    variance per sample -- the other side of the hand-off's "negligible" rule.
+    A pixel handed off because its variance is the light seen in the glass
+    (double_slabs' glints) gains nothing from more chain paths and would pay
+    for the traces. Only its rate-0 pixels matter to the render."""
+    shape = acc.chain_m2.shape
+    if acc.n < 2:
+        return np.ones(shape, dtype=np.float32)
+    n = float(acc.n)
+    m2_raw = _finite(acc.chain_m2) / n
+    var_t = _sample_variance(acc.sum, acc.sum_sq, n)
+    return (_box_blur(m2_raw, radius) > negligible * var_t).astype(np.float32)

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, STEP_COST, CostAccumulator, _sample_variance,
-                             learn_delta_split, learn_pixel_split, learn_rates)
+                             guided_trace_map, learn_delta_split, learn_pixel_split, learn_rates)
 from mpg.errors import RenderError
 
 
@@ -51,6 +51,12 @@ GUIDE_FRACTION = 0.5
 # Render passes: chains of a type their leaf never saw go to the path tracer
 # (on by default; off: the estimator owns every type, as in MPG).
 KNOWN_TYPES = True
+# Render passes: in pixels handed to the path tracer whose chains' light is not
+# negligible, this many guided traces per first separator (design-notes "The
+# guided trace of handed-off pixels"; 0: off). Sphere, 20 s, 3 seeds: own MSE
+# 1.21x lower with 1, 1.32x with 4, 16 worse than 4 (docs/results.md,
+# fourteenth session).
+HANDOFF_GUIDED = 4
 # The pixel split's default (learned for MSE) and the cap on its predicted cost
 # per sample (design-notes "Splitting the pixels"; docs/results.md, eleventh session)
 PIXEL_SPLIT = "mse"
@@ -205,6 +211,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # its leaf never saw is the path tracer's (design-notes "Chain types the
     # training never saw"); training passes keep every type, to find them
     params["known_types"] = _as_bool("known_types", params.pop("known_types", KNOWN_TYPES))
+    params["handoff_guided"] = int(params.pop("handoff_guided", HANDOFF_GUIDED))
     params["step_halvings"] = -1 if auto_halvings else int(halvings)
     init = str(params.pop("init", "surface"))
     n_photons = int(params.pop("photons", 200_000))
@@ -416,9 +423,14 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     seconds_training = _time.monotonic() - t0
     rest_spp = None if spp is None else max(1, spp - spp_train)
     rest_t = None if time is None else max(0.05, time - seconds_training)
+    gmap = None
+    if params.get("handoff_guided") and qmap is not None and np.any(qmap <= 0.0):
+        gmap = guided_trace_map(costs, negligible=negligible)
+        rate_info["guided_trace_fraction"] = float(np.mean(gmap[qmap <= 0.0]))
     img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
-                 chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap, sampler=sampler)
+                 chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap, sampler=sampler,
+                 guided_trace_map=gmap)
     st: dict[str, Any] = img.stats
     st["warnings"] = list(dict.fromkeys(st.get("warnings", []) + warnings))
     st["integrator"] = "mpg"

@@ -29,7 +29,8 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
                 "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff",
                 "chain_handoff_negligible",
-                "delta_split", "pixel_split", "pixel_split_max_cost", "limit_in_training", "known_types"}
+                "delta_split", "pixel_split", "pixel_split_max_cost", "limit_in_training", "known_types",
+                "handoff_guided"}
 BOOL_PARAMS = {"hide_emitters", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "mis_rate", "chain_handoff", "limit_in_training", "known_types"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
@@ -100,7 +101,7 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
         GUIDE_PARAMS if name == "mpg" else set())
     core_params = {k: v for k, v in params.items() if k in allowed}
     for k in ("max_chain", "max_trials", "max_iterations", "step_halvings", "max_depth",
-              "rr_depth", "stree_threshold", "knn_k", "photons", "delta_branch"):
+              "rr_depth", "stree_threshold", "knn_k", "photons", "delta_branch", "handoff_guided"):
         if k == "step_halvings" and str(core_params.get(k)).strip().lower() == "auto":
             if name != "mpg" or "guide" in core_params:
                 raise RenderError("step_halvings 'auto' is chosen by mpg's training loop; "
@@ -252,6 +253,7 @@ def render(
     delta_split_map: np.ndarray | None = None,
     pixel_split_map: np.ndarray | None = None,
     sampler: str | None = None,
+    guided_trace_map: np.ndarray | None = None,
 ) -> Image:
     """Render `scene` and return an Image.
 
@@ -268,6 +270,9 @@ def render(
     pixel_split_map: per-pixel sample splits (crop height x width, integers
       1..64), mpg's learned ones: each sample of a pixel is the mean of k
       camera samples.
+    guided_trace_map: per-pixel 0 or 1 (crop height x width), mpg's learned
+      one: where the integrator's handoff_guided trace runs in pixels of rate 0
+      (None: wherever handoff_guided is on).
     sampler: 'independent' or 'stratified' pixel positions; None: the scene's
       <sampler> (independent, or stratified for stratified/multijitter/
       ldsampler/orthogonal/low_discrepancy). Stratified positions are points of
@@ -360,7 +365,8 @@ def render(
                                       chain_rate_map=chain_rate_map,
                                       delta_split_map=delta_split_map,
                                       pixel_split_map=pixel_split_map,
-                                      stratify=sampler == "stratified", sample_offset=done)
+                                      stratify=sampler == "stratified", sample_offset=done,
+                                      guided_trace_map=guided_trace_map)
             except ValueError as e:   # a bad chain_rate_map (shape, values)
                 raise RenderError(str(e)) from None
             cancelled_by_time = False
