@@ -195,6 +195,9 @@ def test_bad_inputs(env, capsys):
     assert cli.main(["compare", "--scenes", "no_such_scene"]) == 1
     assert "not found" in capsys.readouterr().err
     assert cli.main(["compare", "--scenes", env["scene"], "--integrators", "foo:bar"]) == 1
+    assert cli.main(["compare", "--scenes", env["scene"], "--param", "res=24", "--integrators", "path", "path",
+                     "--cache", env["cache"]]) == 1
+    assert "given twice" in capsys.readouterr().err
     assert cli.main(["reference", env["scene"]]) == 1
 
 

@@ -191,6 +191,8 @@ def test_bench_entries_take_parameters():
     assert parse_integrator("path").params == ()
     with pytest.raises(BenchError, match="did you mean chain_rate"):
         parse_integrator("mpg/chain_rat=1")
+    # `sampler` is the render's setting, not an integrator parameter (run_mpg)
+    assert parse_integrator("path/sampler=stratified").params == (("sampler", "stratified"),)
     with pytest.raises(BenchError, match="key=value"):
         parse_integrator("mpg/init")
 

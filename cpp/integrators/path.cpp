@@ -25,6 +25,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   // at the first one only (both its sides: the trace and the path tracer's weight)
   uint32_t seps = 0;
   bool sep_first = false;
+  Vec3 sep_wo(0.f);   // the separator's BSDF sample direction (omega_D of a chain after it)
   // every BSDF sample so far delta (PathParams::camera_delta)
   bool delta_prefix = true;
   const bool cd_only = mode == PathParams::CameraDelta::Only;
@@ -82,8 +83,8 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         // A handed-off pixel's chain path: shared with the guided trace by the
         // balance heuristic (ChainEstimator::guided_trace)
         if (!is_black(Le))
-          L += beta * Le * chains_->guided_trace_pt_weight(sep_si, sep_ctx, sep_depth, max_depth, chain_si.data(),
-                                                           tau, si, st);
+          L += beta * Le * chains_->guided_trace_pt_weight(sep_si, sep_ctx, sep_depth, max_depth, sep_wo,
+                                                           chain_si.data(), tau, si, st);
       } else if (!is_black(Le)) {
         const float w = prev_delta ? 1.f : power_heuristic(prev_pdf, scene.pdf_emitter_hit(prev_p, si));
         add(beta * Le * w);
@@ -160,6 +161,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       if (separator) {
         sep_depth = depth;
         sep_first = seps == 0;
+        sep_wo = wo;
         sep_si = si;
         sep_ctx = ctx;
         tau.clear();

@@ -697,8 +697,8 @@ Color ChainEstimator::guided_trace_one(const SurfaceInteraction& si, const BSDFC
   // shapes (each lobe forced, weighted by its probability as in delta_tree) and
   // must end on light k. Its density g per solid angle at x_D (and letter
   // choice) is guided_trace_pdf; the path tracer's b = pdf_bsdf(omega_D) times
-  // its Fresnel choices (pt_letters_pdf's rule). Balance heuristic:
-  // contribution = throughput * Le / (b + g). The random numbers are drawn up
+  // its Fresnel choices (pt_letters_pdf's rule). Balance heuristic with k
+  // traces: contribution = throughput * Le / (b + k g). The random numbers are drawn up
   // front, a fixed count per call.
   const int nmax = max_len(depth, max_depth);
   float u_light = rng.next_float();  // (sample() reuses it)
@@ -751,12 +751,21 @@ Color ChainEstimator::guided_trace_one(const SurfaceInteraction& si, const BSDFC
                    double(leaf->pdf_dir(n, bits, wD));
   const double b = double(scene_.bsdfs.pdf(ctx, si.wi, wD)) * letters;
   if (!(g > 0.0) || !std::isfinite(b + g)) return Color(0.f);
+  // in double: with b = 0 and a tiny g the float of 1 / (b + k g) would
+  // overflow, and inf x a zero channel is NaN (the whole sample rejected)
+  const double s = 1.0 / (std::max(b, 0.0) + double(p_.handoff_guided) * g);
+  Color out(0.f);
+  for (int ch = 0; ch < 3; ++ch) {
+    const double v = double(thr[ch]) * double(Le[ch]) * s;
+    if (!std::isfinite(v) || v > 3.0e38) return Color(0.f);
+    out[ch] = float(v);
+  }
   st.guided_trace_hits++;
-  return thr * Le * float(1.0 / (std::max(b, 0.0) + double(p_.handoff_guided) * g));
+  return out;
 }
 
 float ChainEstimator::guided_trace_pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx,
-                                             uint32_t sep_depth, uint32_t max_depth,
+                                             uint32_t sep_depth, uint32_t max_depth, const Vec3& wD,
                                              const SurfaceInteraction* verts, const std::string& tau,
                                              const SurfaceInteraction& light, Stats& st) const {
   const int emitter = scene_.shapes[size_t(light.shape)].emitter;
@@ -776,13 +785,15 @@ float ChainEstimator::guided_trace_pt_weight(const SurfaceInteraction& sep, cons
     if (!(bs.pdf > 0.f) || !bs.delta || bs.null || bs.transmission != (tau[size_t(i)] == 'T')) return 1.f;
     letters *= double(bs.pdf);
   }
-  const Vec3 wD = glm::normalize(verts[0].p - sep.p);
+  // (wD is the sampled direction, not rebuilt from the hit points: the ray left
+  // from an offset origin, and a lobe of kappa up to 1e8 would see the difference)
   const double g = guided_trace_pdf(sep.p, size_t(light_index_[size_t(emitter)]), n, tau_bits(tau.data(), n), wD,
                                     max_len(sep_depth, max_depth), &st);
   if (!(g > 0.0)) return 1.f;
   const double b = double(scene_.bsdfs.pdf(sep_ctx, sep.wi, wD)) * letters;
+  if (!std::isfinite(b)) return 1.f;   // the trace rejects such a path too (its b + k g is not finite)
   const double w = b / (b + double(p_.handoff_guided) * g);
-  return std::isfinite(w) ? float(w) : 0.f;
+  return std::isfinite(w) ? float(w) : 1.f;
 }
 
 Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,

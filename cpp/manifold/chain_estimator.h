@@ -196,21 +196,22 @@ class ChainEstimator {
 
   // handoff_guided (rate-0 pixels): does the technique run here?
   bool guided_trace_on() const { return p_.handoff_guided > 0 && p_.guide && p_.guide->valid() && active_; }
-  // Its sample at the separator `si`: the light it finds through the chain,
-  // weighted by the balance heuristic g / (b + g) against the path tracer's
-  // BSDF sampling (f_s |cos| included; times the path's throughput by the caller).
+  // Its k = handoff_guided samples at the separator `si`: the light each finds
+  // through the chain, weighted by the multi-sample balance heuristic, i.e.
+  // f / (b + k g) each against the path tracer's BSDF sampling (f_s |cos|
+  // included; times the path's throughput by the caller).
   Color guided_trace(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth, uint32_t max_depth,
                      PCG32& rng, Stats& st) const;
-  // The path tracer's weight b / (b + g) for a path it traced from the
-  // separator through the chain vertices `verts` (letters `tau`) to the
-  // emitter hit `light`, in a rate-0 pixel (1 where the guided trace cannot
-  // produce the path).
   // One of guided_trace's k traces.
   Color guided_trace_one(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth, uint32_t max_depth,
                          PCG32& rng, Stats& st) const;
+  // The path tracer's weight b / (b + k g) for a path it traced from the
+  // separator along `wD` (its BSDF sample's direction, the one the density is
+  // of) through the chain vertices `verts` (letters `tau`) to the emitter hit
+  // `light`, in a rate-0 pixel (1 where the guided trace cannot produce the path).
   float guided_trace_pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx, uint32_t sep_depth,
-                               uint32_t max_depth, const SurfaceInteraction* verts, const std::string& tau,
-                               const SurfaceInteraction& light, Stats& st) const;
+                               uint32_t max_depth, const Vec3& wD, const SurfaceInteraction* verts,
+                               const std::string& tau, const SurfaceInteraction& light, Stats& st) const;
 
   // Test entry point: the densities a (estimator, without P) and b (path
   // tracer) of one path as each side computes them. The path tracer's path

@@ -75,6 +75,9 @@ def run(scenes: list[BenchScene], specs: list[IntegratorSpec], time: float, seed
         raise BenchError(f"--time must be positive, got {time}")
     if seeds < 1:
         raise BenchError(f"--seeds must be at least 1, got {seeds}")
+    dup = sorted({s.text for s in specs if sum(t.text == s.text for t in specs) > 1})
+    if dup:   # the runs are kept per entry
+        raise BenchError(f"integrator entries given twice: {', '.join(dup)}")
     results: dict[str, Any] = {"command": report.command_line(argv), "time": time,
                                "seeds": seeds, "scenes": []}
     md = [report.header("Equal-time comparison", argv),

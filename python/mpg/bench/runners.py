@@ -64,8 +64,8 @@ def parse_integrator(text: str) -> IntegratorSpec:
         params.append((k, v))
     from mpg.errors import RenderError
     from mpg.render import check_param_names
-    try:   # a typo is caught before any render of the run
-        check_param_names(name, [k for k, _ in params])
+    try:   # a typo is caught before any render of the run (`sampler` is the render's: run_mpg)
+        check_param_names(name, [k for k, _ in params if k != "sampler"])
     except RenderError as e:
         raise BenchError(f"'{t}': {e}") from None
     return IntegratorSpec(t, "mpg", name, None, tuple(params))
