@@ -675,9 +675,13 @@ double ChainEstimator::guided_trace_pdf(const Vec3& xD, size_t k, int n, uint16_
                                         Stats* st) const {
   if (n < 1 || n > nmax || scene_.emitters[size_t(chain_lights_[k])].type != Emitter::Type::Area) return 0.0;
   const ChainDistribution* leaf = guide_at(xD, light_centre_[k], st);
-  if (!leaf) return 0.0;
-  return double(light_dist_.pmf(k)) * double(leaf->pmf_n(n)) * double(leaf->pmf_tau(n, bits)) *
-         double(leaf->pdf_dir(n, bits, wD));
+  return leaf ? leaf_trace_pdf(*leaf, k, n, bits, wD) : 0.0;
+}
+
+double ChainEstimator::leaf_trace_pdf(const ChainDistribution& leaf, size_t k, int n, uint16_t bits,
+                                      const Vec3& wD) const {
+  return double(light_dist_.pmf(k)) * double(leaf.pmf_n(n)) * double(leaf.pmf_tau(n, bits)) *
+         double(leaf.pdf_dir(n, bits, wD));
 }
 
 Color ChainEstimator::guided_trace(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
@@ -747,8 +751,7 @@ Color ChainEstimator::guided_trace_one(const SurfaceInteraction& si, const BSDFC
   const Color Le = scene_.emitted(h);
   if (is_black(Le)) return Color(0.f);
   // guided_trace_pdf with the leaf already at hand (the same leaf: the same x_D and centre)
-  const double g = double(light_dist_.pmf(k)) * double(leaf->pmf_n(n)) * double(leaf->pmf_tau(n, bits)) *
-                   double(leaf->pdf_dir(n, bits, wD));
+  const double g = leaf_trace_pdf(*leaf, k, n, bits, wD);
   const double b = double(scene_.bsdfs.pdf(ctx, si.wi, wD)) * letters;
   if (!(g > 0.0) || !std::isfinite(b + g)) return Color(0.f);
   // in double: with b = 0 and a tiny g the float of 1 / (b + k g) would

@@ -93,13 +93,11 @@ struct ChainParams {
   // when the leaf holds a sample of its type (n, tau); the path tracer owns the
   // others whole (design-notes, "Chain types the training never saw").
   bool known_types = false;
-  // In pixels of rate 0 (handed to the path tracer), a second path-tracer
-  // technique at each separator: omega_D and the letters drawn from the leaf of
-  // (x_D, the light's centre) and traced through the chain, combined with the
-  // BSDF-sampled paths by the balance heuristic (design-notes, "The guided
-  // trace of handed-off pixels").
-  // The count k of traces per separator (0: off); the balance heuristic then
-  // weighs k g against b.
+  // In pixels of rate 0 (handed to the path tracer), k = handoff_guided extra
+  // samples at the path's first separator (0: off): omega_D and the letters
+  // drawn from the leaf of (x_D, the light's centre) and traced through the
+  // chain, combined with the BSDF-sampled paths by the balance heuristic, k g
+  // against b (design-notes, "The guided trace of handed-off pixels").
   int handoff_guided = 0;
   bool record = false;             // store SubpathSamples in Stats::subpaths
   bool count_limits = false;       // Stats::limit_m2 / limit_steps (mpg's training, step_halvings=auto)
@@ -286,6 +284,8 @@ class ChainEstimator {
   // light_centre_[k]); 0 where it cannot draw it.
   double guided_trace_pdf(const Vec3& xD, size_t k, int n, uint16_t bits, const Vec3& wD, int nmax,
                           Stats* st) const;
+  // ... its product at a leaf already looked up (n within the limit).
+  double leaf_trace_pdf(const ChainDistribution& leaf, size_t k, int n, uint16_t bits, const Vec3& wD) const;
   // K' of the MIS-aware Bernoulli process: each round, with probability beta a
   // trial that succeeds iff it finds (tau*, omega*), otherwise an immediate
   // success; E[K'] = 1 / (beta P + 1 - beta). beta = 1: SMS's K, E = 1/P.

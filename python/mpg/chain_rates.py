@@ -226,7 +226,7 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
         # its caustic to the path tracer, which never finds that light (black
         # squares, relMSE 0.83-0.91 against sms_star's 0.04-0.08)
         eligible = has & ((_box_blur(finite(acc.alt_hits), radius, total=True) >= min_hits) |
-                          (_box_blur(m2_raw, radius) <= negligible * var_t))
+                          _negligible_chain_light(m2_raw, var_t, radius, negligible))
 
     def means(q, pt):
         """mean(wV) and mean(C) of a map (blurred M, c1, dv: what the choices see)."""
@@ -492,10 +492,17 @@ def guided_trace_map(acc: CostAccumulator, radius: int = 3,
     A pixel handed off because its variance is the light seen in the glass
     (double_slabs' glints) gains nothing from more chain paths and would pay
     for the traces. Only its rate-0 pixels matter to the render."""
-    shape = acc.chain_m2.shape
     if acc.n < 2:
-        return np.ones(shape, dtype=np.float32)
+        return np.ones(acc.chain_m2.shape, dtype=np.float32)
     n = float(acc.n)
     m2_raw = _finite(acc.chain_m2) / n
     var_t = _sample_variance(acc.sum, acc.sum_sq, n)
-    return (_box_blur(m2_raw, radius) > negligible * var_t).astype(np.float32)
+    return (~_negligible_chain_light(m2_raw, var_t, radius, negligible)).astype(np.float32)
+
+
+def _negligible_chain_light(m2_raw: np.ndarray, var_t: np.ndarray, radius: int,
+                            negligible: float) -> np.ndarray:
+    """Pixels whose window's chain second moment (per sample) is at most
+    `negligible` of the pixel's own variance per sample: the hand-off's
+    "negligible" rule (learn_rates) and the guided trace's off pixels."""
+    return _box_blur(m2_raw, radius) <= negligible * var_t
