@@ -456,3 +456,160 @@ def test_the_guided_trace_map_leaves_out_negligible_chain_light():
     g = guided_trace_map(acc, radius=1, negligible=1e-3)   # 0.1 against 4e-3 and 0.4
     assert g.dtype == np.float32
     assert np.all(g[:, :6] == 1.0) and np.all(g[:, 6:] == 0.0)
+
+
+def test_a_per_pixel_count_of_guided_traces_keeps_the_image_unbiased(scenes_dir):
+    """guided_trace_map holds each rate-0 pixel's count of traces (0..64): with
+    counts 0, 1, 2 and 5 at random over pixels of rate 0 (half the image), each
+    pixel's traces and its path tracer's chain paths share by the balance
+    heuristic of that pixel's k, so the image agrees with the path tracer
+    (|z| < 5 on the image and nine regions, p < 6e-7 each)."""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
+    guide = _trained_guide(sc)
+    rng = np.random.default_rng(23)
+    qmap = np.exp(rng.uniform(np.log(0.05), 0.0, (24, 24))).astype(np.float32)
+    qmap[rng.random((24, 24)) < 0.5] = 0.0
+    kmap = rng.choice(np.array([0, 1, 2, 5], np.float32), size=(24, 24))
+    ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
+    img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": 4},
+                     spp=1024, seed=13, progress=False, chain_rate_map=qmap, guided_trace_map=kmap)
+    st = img.stats
+    assert st["guided_traces"] > 0 and st["guided_trace_hits"] > 0.01 * st["guided_traces"]
+    assert st["rejected_samples"] == 0
+    assert image_zmax(img, ref, REGIONS_24) < 5
+    # the count is the map's, not the integrator's: 5 traces a separator where it says 5
+    five = np.where(kmap == 5, 5, 0).astype(np.float32)
+    one = np.where(kmap == 5, 1, 0).astype(np.float32)
+    zero = np.zeros((24, 24), np.float32)
+    t = [mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": 1},
+                    spp=4, seed=3, progress=False, chain_rate_map=zero, guided_trace_map=m).stats["guided_traces"]
+         for m in (five, one)]
+    assert t[1] > 0 and t[0] == pytest.approx(5 * t[1], rel=0.1)
+    with pytest.raises(mpg.RenderError, match="guided_trace_map"):
+        mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": 1},
+                   spp=1, progress=False, chain_rate_map=zero, guided_trace_map=np.full((24, 24), 65, np.float32))
+
+
+def _sums_z(s, s2, n, ref):
+    """|z| of the image mean and nine region means of per-pixel sums (s, s2 of
+    n samples, height x width x 3; n a number or per pixel) against a
+    reference Image."""
+    out = []
+    n = np.asarray(n, dtype=float)
+    n = n[..., None] if n.ndim else n
+    mean = s / n
+    var_mean = np.maximum(s2 / n - mean * mean, 0.0) / (n - 1)
+    for sy, sx in REGIONS_24:
+        k = mean[sy, sx][..., 0].size
+        se = np.sqrt(var_mean[sy, sx].sum(axis=(0, 1)) + ref.variance[sy, sx].sum(axis=(0, 1))) / k
+        d = mean[sy, sx].mean(axis=(0, 1)) - ref.rgb[sy, sx].astype(np.float64).mean(axis=(0, 1))
+        out.append(np.abs(d) / np.maximum(se, 1e-12))
+    return float(np.max(out))
+
+
+def test_training_records_the_guided_trace_forms_of_rate_zero(scenes_dir):
+    """A training pass (record_costs) records, in one sample of four, two
+    guided traces at the first separator, and from them the value the pixel
+    would have at rate 0 with k = 1, 2, 4, 8 traces (Stats::record_trace): Y_k,
+    the pair weighted for k and averaged. Each Y_k is an estimate of the same pixel:
+    they agree with the path tracer (|z| < 5 on the image and nine regions).
+    E[(Y_k - I)^2] + (1/k - 1/2) Var(Z_k), from the pair's (Z_1 - Z_2)^2 / 2,
+    predicts the variance of a render at rate 0 with k traces: within 15 % on
+    the image's summed variance for k = 1 and 8 (~150 000 recorded samples
+    against ~600 000). A guided_trace_map of zeros switches the record off."""
+    from stats_util import run_pass
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
+    guide = _trained_guide(sc)
+    ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
+    params = {"guide": guide, "chain_rate": 0.25, "handoff_guided": 3}
+    n = 1024
+    r = run_pass(sc, "mpg", n, 19, params, record_costs=True)
+    assert _sums_z(r["sum"], r["sum_sq"], n, ref) < 5
+    nt = r["trace_n"]
+    assert np.all(nt == n // 4)
+    assert _sums_z(r["alt_sum"], r["alt_sum_sq"], n, ref) < 5
+    for pre in ("trace1", "trace2", "trace4", "trace8"):
+        assert _sums_z(r[pre + "_sum"], r[pre + "_sum_sq"], nt, ref) < 5, pre
+        assert r[pre + "_var"].sum() > 0
+    assert r["trace_rays"].sum() > 0 and r["trace_hits"].sum() > r["alt_hits"].sum() > 0
+    assert r["trace_lobes"].sum() > 0 and r["trace_pt_lobes"].sum() > 0   # (their cost, LOBE_COST)
+    zero = np.zeros((24, 24), np.float32)
+    for k in (1, 8):
+        mean = r["sum"] / n
+        ys = r[f"trace{k}_sum"] / nt[..., None]
+        y2 = r[f"trace{k}_sum_sq"] / nt[..., None]
+        mse_y = (y2 - 2 * ys * mean + mean * mean).mean(axis=2)
+        predicted = float(np.sum(mse_y + (1 / k - 1 / 2) * r[f"trace{k}_var"] / nt))
+        img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": k},
+                         spp=n, seed=29, progress=False, chain_rate_map=zero,
+                         guided_trace_map=np.full((24, 24), k, np.float32))
+        measured = float(np.sum(img.variance.mean(axis=2))) * n   # per-sample variance, summed over pixels
+        assert predicted == pytest.approx(measured, rel=0.15), (k, predicted, measured)
+    off = run_pass(sc, "mpg", 8, 19, params, record_costs=True, guided_trace_map=zero)
+    for k in (1, 2, 4, 8):
+        assert off[f"trace{k}_var"].sum() == 0
+    assert off["trace_rays"].sum() == 0 and off["trace_lobes"].sum() == 0
+    assert off["trace_hits"].sum() <= off["alt_hits"].sum()
+
+
+def test_rates_choose_the_guided_trace_where_it_pays():
+    """learn_rates_traced: rate 0 has the path tracer alone and the path tracer
+    with k = 1, 2, 4 or 8 traces. Where more traces keep cutting the variance
+    for their rays, the pixel takes 8; where one trace does as well as more,
+    one; where the traces find nothing new, the path tracer alone; where the
+    window saw too few hits, no trace; the pair's variance term moves the
+    choice (k = 1 pays (1 - 1/2) of it, k = 8 saves (1/2 - 1/8)); with
+    trace_k = 0 the traces' records are ignored (the rates of learn_rates)."""
+    from mpg.chain_rates import learn_rates_traced
+    h, w = 6, 30
+    m2 = np.full((h, w), 40.0)
+    c1 = np.full((h, w), 5e3)
+    c0 = np.full((h, w), 1e3)
+    var = np.full((h, w), 2.0) + (1 / 0.125 - 1) * 40.0
+    a = _acc(m2, c1, c0, var, mean=3.0, alt_var=np.full((h, w), 2.0), alt_mean=3.0, alt_hits=64.0)
+    n = a.n
+    a.trace_n[...] = n   # (as if every sample recorded the traces)
+
+    def put(cols, vs, var_z=0.0, rays=10.0, hits=64.0):
+        """per k: the values' variance about the mean 3; one trace's variance; two traces' rays"""
+        for k, v in zip((1, 2, 4, 8), vs):
+            getattr(a, f"trace{k}_sum")[:, cols] = 3.0 * n
+            getattr(a, f"trace{k}_sum_sq")[:, cols] = (v + 9.0) * n
+            getattr(a, f"trace{k}_var")[:, cols] = var_z * n
+        a.trace_rays[:, cols] = rays * n
+        a.trace_hits[:, cols] = hits
+    put(np.s_[0:6], (1.5, 1.0, 0.5, 0.2))           # 8
+    put(np.s_[6:12], (0.3, 0.3, 0.3, 0.3))          # 1
+    put(np.s_[12:18], (2.0, 2.0, 2.0, 2.0))         # the path tracer alone
+    put(np.s_[18:24], (1.5, 1.0, 0.5, 0.2), hits=3.0)
+    a.alt_hits[:, 18:24] = 3.0
+    # as 6-11, but one trace's variance 2: k = 1 has 0.3 + 1, k = 8 0.3 - 0.75 -> 0
+    put(np.s_[24:30], (0.3, 0.3, 0.3, 0.3), var_z=2.0)
+    q, kmap, info = learn_rates_traced(a, radius=0, objective="mse", trace_k=4)
+    assert np.all(q[:, :18] == 0.0) and np.all(q[:, 24:] == 0.0)
+    assert np.all(kmap[:, 0:6] == 8) and np.all(kmap[:, 6:12] == 1) and np.all(kmap[:, 12:18] == 0)
+    assert np.all(q[:, 18:24] > 0) and np.all(kmap[:, 18:24] == 0)
+    assert np.all(kmap[:, 24:30] > 1)
+    assert info["chain_rate_fraction_trace"] == pytest.approx(0.6)
+    q0, k0, info0 = learn_rates_traced(a, radius=0, objective="mse", trace_k=0)
+    q_plain, _ = learn_rates(a, radius=0, objective="mse")
+    assert np.array_equal(q0, q_plain) and not np.any(k0)
+
+
+def test_learn_trace_renders_end_to_end_and_is_deterministic(scenes_dir):
+    """mpg with learn_trace: the training records the traces, the learned map
+    holds 0 or one of TRACE_KS in rate-0 pixels, and the image is the same on
+    1 and 2 threads (the traces are recorded per sample, from the sample's
+    own random stream). Off (the default), no trace is recorded."""
+    from mpg.chain_rates import TRACE_KS
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
+    p = {"type": "mpg", "learn_trace": True}
+    a = mpg.render(sc, integrator=p, spp=32, seed=3, threads=1, progress=False)
+    b = mpg.render(sc, integrator=p, spp=32, seed=3, threads=2, progress=False)
+    assert np.array_equal(a.rgb, b.rgb)
+    st = a.stats
+    assert "chain_rate_fraction_trace" in st and st["chain_rate_learned"]
+    if st.get("guided_trace_fraction", 0.0) > 0:
+        assert min(TRACE_KS) <= st["guided_trace_mean_k"] <= max(TRACE_KS)
+    off = mpg.render(sc, integrator="mpg", spp=32, seed=3, progress=False)
+    assert off.stats.get("chain_rate_fraction_trace", 0.0) == 0.0

@@ -159,6 +159,17 @@ py::dict pass_to_dict(PassResult& r) {
     put("alt_sum_sq", r.alt_sum_sq, rgb);
     put("alt_hits", r.alt_hits, grey);
     put("delta_rays", r.delta_rays, grey);
+    for (int f = 0; f < Stats::kTraceKs; ++f) {
+      const std::string k = "trace" + std::to_string(1 << f);
+      put((k + "_sum").c_str(), r.trace_sum[f], rgb);
+      put((k + "_sum_sq").c_str(), r.trace_sum_sq[f], rgb);
+      put((k + "_var").c_str(), r.trace_var[f], grey);
+    }
+    put("trace_hits", r.trace_hits, grey);
+    put("trace_n", r.trace_n, grey);
+    put("trace_lobes", r.trace_lobes, grey);
+    put("trace_pt_lobes", r.trace_pt_lobes, grey);
+    put("trace_rays", r.trace_rays, grey);
     put("delta_sum", r.delta_sum, rgb);
     put("delta_sum_sq", r.delta_sum_sq, rgb);
   }
@@ -691,7 +702,8 @@ PYBIND11_MODULE(_core, m) {
         if (!guided_trace_map.is_none()) {
           auto m = pixel_map(guided_trace_map, scene->camera, "guided_trace_map");
           for (float v : *m)
-            if (!(v == 0.f || v == 1.f)) throw std::invalid_argument("guided_trace_map values must be 0 or 1");
+            if (!(v >= 0.f && v <= 64.f && v == std::floor(v)))
+              throw std::invalid_argument("guided_trace_map values must be integers in 0..64");
           cfg.guided_trace_map = std::move(m);
         }
         auto job = std::make_shared<RenderJob>(scene, integ, cfg);

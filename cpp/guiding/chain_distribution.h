@@ -39,6 +39,11 @@ class ChainDistribution {
   // Direction for (n, tau); density is per solid angle.
   bool sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, Vec3& dir) const;
   float pdf_dir(int n, uint16_t tau, const Vec3& dir) const;
+  // The lobes pdf_dir visits for (n, tau): its cost (one dot product each)
+  uint32_t lobe_count(int n, uint16_t tau) const {
+    const int t = find_type(n, tau);
+    return t < 0 ? 0u : types_[size_t(t)].count;
+  }
   // The draws the estimator makes, by the index of a type (n, tau) in the
   // leaf's table: sample_type draws tau ~ P_e(tau | n) (-1: no sample of
   // length n), sample_dir_of the direction sample_dir gives for that type,

@@ -31,6 +31,26 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   const bool cd_only = mode == PathParams::CameraDelta::Only;
   const bool cd_exclude = mode == PathParams::CameraDelta::Exclude;
   const bool cd_all = mode == PathParams::CameraDelta::All;
+  // A training pass's record of the rate-0 option with the guided trace
+  // (Stats::record_trace): in pixels that run chain estimates, where the
+  // pass's guided_trace_map does not switch it off
+  const bool trace_alt = chains_ && st.record_trace && st.pixel_chain_rate != 0.f && st.pixel_trace_k != 0 &&
+                         chains_->guided_trace_on();
+  // The rate-0 pixel's count of guided traces
+  const int trace_k = !chains_ ? 0 : (st.pixel_trace_k < 0 ? chains_->handoff_guided() : st.pixel_trace_k);
+  // ... a chain path after the first separator: the traces' weight replaces
+  // the path tracer alone's 1
+  auto trace_alt_hit = [&](const SurfaceInteraction& hit, const Color& c) {
+    if (!trace_alt || !chain_ok || tau.empty() || !sep_first || is_black(c)) return;
+    double b = 0.0, g = 0.0;
+    const bool shared = chains_->guided_trace_densities(sep_si, sep_ctx, sep_depth, max_depth, sep_wo,
+                                                        chain_si.data(), tau, hit, st, b, g);
+    // (k = 2^i traces: Stats::kTraceKs)
+    for (int i = 0; i < Stats::kTraceKs; ++i)
+      st.sample_trace_hits_delta[i] += c * (ChainEstimator::guided_trace_pt_weight(shared, b, g, 1 << i) - 1.f);
+    st.sample_trace_hit = true;
+  };
+
   // Light found by BSDF sampling: on a delta prefix (All) it is also the
   // sample's delta part, which a split pixel averages apart (render.cpp).
   auto add = [&](const Color& c) {
@@ -71,6 +91,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
                                              rng, st, beta * Le, &leaf);
           st.sample_alt_delta += beta * Le * (1.f - w);  // the path tracer alone keeps it whole
           st.sample_owned_hit = true;  // (w can round to 1 where the path tracer's density dominates)
+          trace_alt_hit(si, beta * Le);
           if (w > 0.f) {
             L += beta * Le * w;
             st.owned_shared++;
@@ -79,15 +100,20 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
           }
         }
       } else if (chains_ && chain_ok && !tau.empty() && sep_first && st.pixel_chain_rate == 0.f &&
-                 st.pixel_guided_trace && chains_->guided_trace_on()) {
+                 trace_k > 0 && chains_->guided_trace_on()) {
         // A handed-off pixel's chain path: shared with the guided trace by the
         // balance heuristic (ChainEstimator::guided_trace)
-        if (!is_black(Le))
-          L += beta * Le * chains_->guided_trace_pt_weight(sep_si, sep_ctx, sep_depth, max_depth, sep_wo,
-                                                           chain_si.data(), tau, si, st);
+        if (!is_black(Le)) {
+          double b = 0.0, g = 0.0;
+          const bool shared = chains_->guided_trace_densities(sep_si, sep_ctx, sep_depth, max_depth, sep_wo,
+                                                              chain_si.data(), tau, si, st, b, g);
+          L += beta * Le * ChainEstimator::guided_trace_pt_weight(shared, b, g, trace_k);
+        }
       } else if (!is_black(Le)) {
         const float w = prev_delta ? 1.f : power_heuristic(prev_pdf, scene.pdf_emitter_hit(prev_p, si));
         add(beta * Le * w);
+        // (a chain path here has w = 1: its last vertex is a chain vertex)
+        if (prev_delta) trace_alt_hit(si, beta * Le);
       }
     }
     if (!may_scatter(depth, st)) break;
@@ -131,8 +157,8 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       const float q = chains_->rate_at(st);
       if (q <= 0.f) {
         st.chain_handed++;
-        if (seps == 0 && st.pixel_guided_trace && chains_->guided_trace_on())
-          L += beta * chains_->guided_trace(si, ctx, depth, max_depth, rng, st);
+        if (seps == 0 && trace_k > 0 && chains_->guided_trace_on())
+          L += beta * chains_->guided_trace(si, ctx, depth, max_depth, trace_k, rng, st);
       } else if (q >= 1.f || rng.next_float() < q) {
         const Color X = beta * chains_->estimate(si, ctx, depth, max_depth, rng, st, beta);
         L += X * (1.f / q);
@@ -142,6 +168,16 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         if (std::isfinite(m2)) st.pixel_chain_m2 += m2;
       } else {
         st.chain_skipped++;
+      }
+      if (trace_alt && seps == 0) {
+        // two traces, from which the render worker forms the values of k traces
+        const uint64_t r0 = st.rays;
+        for (TraceSample& t : st.sample_traces) {
+          t = chains_->guided_trace_one(si, ctx, depth, max_depth, rng, st);
+          t.f *= beta;
+          if (!is_black(t.f)) st.sample_trace_hit = true;
+        }
+        st.trace_rays += st.rays - r0;
       }
     }
 

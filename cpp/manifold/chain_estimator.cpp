@@ -675,27 +675,29 @@ double ChainEstimator::guided_trace_pdf(const Vec3& xD, size_t k, int n, uint16_
                                         Stats* st) const {
   if (n < 1 || n > nmax || scene_.emitters[size_t(chain_lights_[k])].type != Emitter::Type::Area) return 0.0;
   const ChainDistribution* leaf = guide_at(xD, light_centre_[k], st);
-  return leaf ? leaf_trace_pdf(*leaf, k, n, bits, wD) : 0.0;
+  return leaf ? leaf_trace_pdf(*leaf, k, n, bits, wD, st ? &st->trace_pt_lobes : nullptr) : 0.0;
 }
 
 double ChainEstimator::leaf_trace_pdf(const ChainDistribution& leaf, size_t k, int n, uint16_t bits,
-                                      const Vec3& wD) const {
+                                      const Vec3& wD, uint64_t* lobes) const {
+  if (lobes) *lobes += leaf.lobe_count(n, bits);
   return double(light_dist_.pmf(k)) * double(leaf.pmf_n(n)) * double(leaf.pmf_tau(n, bits)) *
          double(leaf.pdf_dir(n, bits, wD));
 }
 
 Color ChainEstimator::guided_trace(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
-                                   uint32_t max_depth, PCG32& rng, Stats& st) const {
+                                   uint32_t max_depth, int k, PCG32& rng, Stats& st) const {
   // k traces, each weighted by the balance heuristic of k samples of density g
   // against the path tracer's one of density b (Veach's multi-sample form):
   // f / (b + k g) each
   Color sum(0.f);
-  for (int j = 0; j < p_.handoff_guided; ++j) sum += guided_trace_one(si, ctx, depth, max_depth, rng, st);
+  for (int j = 0; j < k; ++j) sum += guided_trace_one(si, ctx, depth, max_depth, rng, st).weighted(k);
   return sum;
 }
 
-Color ChainEstimator::guided_trace_one(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
-                                       uint32_t max_depth, PCG32& rng, Stats& st) const {
+ChainEstimator::TraceSample ChainEstimator::guided_trace_one(const SurfaceInteraction& si, const BSDFContext& ctx,
+                                                             uint32_t depth, uint32_t max_depth, PCG32& rng,
+                                                             Stats& st) const {
   // Draws: the light k by power, (n, tau, omega_D) from the leaf of (x_D, its
   // centre); then the ray follows tau's letters through delta vertices of chain
   // shapes (each lobe forced, weighted by its probability as in delta_tree) and
@@ -709,21 +711,21 @@ Color ChainEstimator::guided_trace_one(const SurfaceInteraction& si, const BSDFC
   const float u_n = rng.next_float(), u_t = rng.next_float();
   const double u_lobe = rng.next_double();
   const Vec2 u_dir(rng.next_float(), rng.next_float());
-  if (nmax < 1) return Color(0.f);
+  if (nmax < 1) return TraceSample{};
   const size_t k = light_dist_.sample(u_light);
   const Emitter& em = scene_.emitters[size_t(chain_lights_[k])];
-  if (em.type != Emitter::Type::Area) return Color(0.f);
+  if (em.type != Emitter::Type::Area) return TraceSample{};
   const ChainDistribution* leaf = guide_at(si.p, light_centre_[k], &st);
-  if (!leaf) return Color(0.f);
+  if (!leaf) return TraceSample{};
   st.guided_traces++;
   const int n = leaf->sample_n(u_n);
-  if (n < 1 || n > nmax) return Color(0.f);
+  if (n < 1 || n > nmax) return TraceSample{};
   const int t = leaf->sample_type(n, u_t);
   Vec3 wD;
-  if (t < 0 || !leaf->sample_dir_of(t, u_lobe, u_dir, wD)) return Color(0.f);
+  if (t < 0 || !leaf->sample_dir_of(t, u_lobe, u_dir, wD)) return TraceSample{};
   const uint16_t bits = leaf->type_tau(t);
   const Color f = scene_.bsdfs.eval(ctx, si.wi, wD);
-  if (is_black(f)) return Color(0.f);
+  if (is_black(f)) return TraceSample{};
   Color thr = f;
   double letters = 1.0;
   Vec3 o = si.p, ng = si.ng, d = wD;
@@ -731,50 +733,46 @@ Color ChainEstimator::guided_trace_one(const SurfaceInteraction& si, const BSDFC
   for (int i = 0; i <= n; ++i) {
     st.rays++;
     h = scene_.intersect(offset_ray_origin(o, ng, d), d, 0.f, kInf);
-    if (!h.valid) return Color(0.f);
+    if (!h.valid) return TraceSample{};
     if (i == n) break;
-    if (!is_chain_shape(h.shape)) return Color(0.f);
+    if (!is_chain_shape(h.shape)) return TraceSample{};
     const BSDFContext c = scene_.bsdfs.resolve(scene_.shapes[size_t(h.shape)].bsdf, h);
-    if (!c.leaf || !c.leaf->is_delta()) return Color(0.f);
+    if (!c.leaf || !c.leaf->is_delta()) return TraceSample{};
     const bool want_r = (bits >> i) & 1u;
     Vec3 wo;
     const BSDFSample bs = scene_.bsdfs.sample(c, h.wi, want_r ? 0.f : 1.f, Vec2(0.5f), wo);
     if (!(bs.pdf > 0.f) || !bs.delta || bs.null || bs.transmission == want_r || is_black(bs.weight))
-      return Color(0.f);
+      return TraceSample{};
     thr *= bs.weight * bs.pdf;
     letters *= double(bs.pdf);
     o = h.p;
     ng = h.ng;
     d = wo;
   }
-  if (scene_.shapes[size_t(h.shape)].emitter != chain_lights_[k]) return Color(0.f);
+  if (scene_.shapes[size_t(h.shape)].emitter != chain_lights_[k]) return TraceSample{};
   const Color Le = scene_.emitted(h);
-  if (is_black(Le)) return Color(0.f);
+  if (is_black(Le)) return TraceSample{};
   // guided_trace_pdf with the leaf already at hand (the same leaf: the same x_D and centre)
-  const double g = leaf_trace_pdf(*leaf, k, n, bits, wD);
+  const double g = leaf_trace_pdf(*leaf, k, n, bits, wD, &st.trace_lobes);
   const double b = double(scene_.bsdfs.pdf(ctx, si.wi, wD)) * letters;
-  if (!(g > 0.0) || !std::isfinite(b + g)) return Color(0.f);
-  // in double: with b = 0 and a tiny g the float of 1 / (b + k g) would
-  // overflow, and inf x a zero channel is NaN (the whole sample rejected)
-  const double s = 1.0 / (std::max(b, 0.0) + double(p_.handoff_guided) * g);
-  Color out(0.f);
-  for (int ch = 0; ch < 3; ++ch) {
-    const double v = double(thr[ch]) * double(Le[ch]) * s;
-    if (!std::isfinite(v) || v > 3.0e38) return Color(0.f);
-    out[ch] = float(v);
-  }
+  if (!(g > 0.0) || !std::isfinite(b + g)) return TraceSample{};
+  TraceSample ts;
+  ts.f = thr * Le;
+  ts.b = b;
+  ts.g = g;
   st.guided_trace_hits++;
-  return out;
+  return ts;
 }
 
-float ChainEstimator::guided_trace_pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx,
-                                             uint32_t sep_depth, uint32_t max_depth, const Vec3& wD,
-                                             const SurfaceInteraction* verts, const std::string& tau,
-                                             const SurfaceInteraction& light, Stats& st) const {
+bool ChainEstimator::guided_trace_densities(const SurfaceInteraction& sep, const BSDFContext& sep_ctx,
+                                            uint32_t sep_depth, uint32_t max_depth, const Vec3& wD,
+                                            const SurfaceInteraction* verts, const std::string& tau,
+                                            const SurfaceInteraction& light, Stats& st, double& b,
+                                            double& g) const {
   const int emitter = scene_.shapes[size_t(light.shape)].emitter;
-  if (emitter < 0 || light_index_[size_t(emitter)] < 0) return 1.f;
+  if (emitter < 0 || light_index_[size_t(emitter)] < 0) return false;
   const int n = int(tau.size());
-  if (n < 1 || n > ChainDistribution::kMaxN) return 1.f;
+  if (n < 1 || n > ChainDistribution::kMaxN) return false;
   // The letters' probabilities as the path tracer drew them (Fresnel at
   // dielectrics, 1 at conductors), the same numbers guided_trace multiplies
   // into its b; a vertex the guided trace cannot pass (not delta) gives g = 0.
@@ -782,20 +780,24 @@ float ChainEstimator::guided_trace_pt_weight(const SurfaceInteraction& sep, cons
   for (int i = 0; i < n; ++i) {
     const SurfaceInteraction& v = verts[i];
     const BSDFContext c = scene_.bsdfs.resolve(scene_.shapes[size_t(v.shape)].bsdf, v);
-    if (!c.leaf || !c.leaf->is_delta()) return 1.f;
+    if (!c.leaf || !c.leaf->is_delta()) return false;
     Vec3 wo;
     const BSDFSample bs = scene_.bsdfs.sample(c, v.wi, tau[size_t(i)] == 'R' ? 0.f : 1.f, Vec2(0.5f), wo);
-    if (!(bs.pdf > 0.f) || !bs.delta || bs.null || bs.transmission != (tau[size_t(i)] == 'T')) return 1.f;
+    if (!(bs.pdf > 0.f) || !bs.delta || bs.null || bs.transmission != (tau[size_t(i)] == 'T')) return false;
     letters *= double(bs.pdf);
   }
   // (wD is the sampled direction, not rebuilt from the hit points: the ray left
   // from an offset origin, and a lobe of kappa up to 1e8 would see the difference)
-  const double g = guided_trace_pdf(sep.p, size_t(light_index_[size_t(emitter)]), n, tau_bits(tau.data(), n), wD,
-                                    max_len(sep_depth, max_depth), &st);
-  if (!(g > 0.0)) return 1.f;
-  const double b = double(scene_.bsdfs.pdf(sep_ctx, sep.wi, wD)) * letters;
-  if (!std::isfinite(b)) return 1.f;   // the trace rejects such a path too (its b + k g is not finite)
-  const double w = b / (b + double(p_.handoff_guided) * g);
+  g = guided_trace_pdf(sep.p, size_t(light_index_[size_t(emitter)]), n, tau_bits(tau.data(), n), wD,
+                       max_len(sep_depth, max_depth), &st);
+  if (!(g > 0.0)) return false;
+  b = double(scene_.bsdfs.pdf(sep_ctx, sep.wi, wD)) * letters;
+  return std::isfinite(b);   // the trace rejects such a path too (its b + k g is not finite)
+}
+
+float ChainEstimator::guided_trace_pt_weight(bool shared, double b, double g, int k) {
+  if (!shared || k < 1) return 1.f;
+  const double w = b / (b + double(k) * g);
   return std::isfinite(w) ? float(w) : 1.f;
 }
 

@@ -194,22 +194,29 @@ class ChainEstimator {
 
   // handoff_guided (rate-0 pixels): does the technique run here?
   bool guided_trace_on() const { return p_.handoff_guided > 0 && p_.guide && p_.guide->valid() && active_; }
-  // Its k = handoff_guided samples at the separator `si`: the light each finds
-  // through the chain, weighted by the multi-sample balance heuristic, i.e.
-  // f / (b + k g) each against the path tracer's BSDF sampling (f_s |cos|
-  // included; times the path's throughput by the caller).
+  using TraceSample = mpg::TraceSample;   // (render/stats.h)
+  // k samples at the separator `si` (k: the pixel's count, Stats::pixel_trace_k,
+  // handoff_guided by default): the light each finds through the chain,
+  // weighted by the multi-sample balance heuristic, i.e. f / (b + k g) each
+  // against the path tracer's BSDF sampling (f_s |cos| included; times the
+  // path's throughput by the caller).
   Color guided_trace(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth, uint32_t max_depth,
-                     PCG32& rng, Stats& st) const;
+                     int k, PCG32& rng, Stats& st) const;
   // One of guided_trace's k traces.
-  Color guided_trace_one(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth, uint32_t max_depth,
-                         PCG32& rng, Stats& st) const;
-  // The path tracer's weight b / (b + k g) for a path it traced from the
-  // separator along `wD` (its BSDF sample's direction, the one the density is
-  // of) through the chain vertices `verts` (letters `tau`) to the emitter hit
-  // `light`, in a rate-0 pixel (1 where the guided trace cannot produce the path).
-  float guided_trace_pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx, uint32_t sep_depth,
-                               uint32_t max_depth, const Vec3& wD, const SurfaceInteraction* verts,
-                               const std::string& tau, const SurfaceInteraction& light, Stats& st) const;
+  TraceSample guided_trace_one(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
+                               uint32_t max_depth, PCG32& rng, Stats& st) const;
+  // The densities b (path tracer) and g (one trace) of a path the path tracer
+  // traced from the separator along `wD` (its BSDF sample's direction, the one
+  // the density is of) through the chain vertices `verts` (letters `tau`) to
+  // the emitter hit `light`; false where the guided trace cannot produce the
+  // path (the path tracer's weight is 1 there).
+  bool guided_trace_densities(const SurfaceInteraction& sep, const BSDFContext& sep_ctx, uint32_t sep_depth,
+                              uint32_t max_depth, const Vec3& wD, const SurfaceInteraction* verts,
+                              const std::string& tau, const SurfaceInteraction& light, Stats& st,
+                              double& b, double& g) const;
+  // ... and its weight b / (b + k g) against k traces (1 where false above).
+  static float guided_trace_pt_weight(bool shared, double b, double g, int k);
+  int handoff_guided() const { return p_.handoff_guided; }
 
   // Test entry point: the densities a (estimator, without P) and b (path
   // tracer) of one path as each side computes them. The path tracer's path
@@ -285,7 +292,9 @@ class ChainEstimator {
   double guided_trace_pdf(const Vec3& xD, size_t k, int n, uint16_t bits, const Vec3& wD, int nmax,
                           Stats* st) const;
   // ... its product at a leaf already looked up (n within the limit).
-  double leaf_trace_pdf(const ChainDistribution& leaf, size_t k, int n, uint16_t bits, const Vec3& wD) const;
+  // (lobes: where to count the lobes pdf_dir visits, Stats::trace_lobes / trace_pt_lobes)
+  double leaf_trace_pdf(const ChainDistribution& leaf, size_t k, int n, uint16_t bits, const Vec3& wD,
+                        uint64_t* lobes = nullptr) const;
   // K' of the MIS-aware Bernoulli process: each round, with probability beta a
   // trial that succeeds iff it finds (tau*, omega*), otherwise an immediate
   // success; E[K'] = 1 / (beta P + 1 - beta). beta = 1: SMS's K, E = 1/P.

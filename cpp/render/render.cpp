@@ -56,6 +56,16 @@ void RenderJob::run() {
     result_.alt_sum.assign(size_t(W) * H * 3, 0.0);
     result_.alt_hits.assign(size_t(W) * H, 0.0);
     result_.alt_sum_sq.assign(size_t(W) * H * 3, 0.0);
+    for (int f = 0; f < Stats::kTraceKs; ++f) {
+      result_.trace_sum[f].assign(size_t(W) * H * 3, 0.0);
+      result_.trace_sum_sq[f].assign(size_t(W) * H * 3, 0.0);
+      result_.trace_var[f].assign(size_t(W) * H, 0.0);
+    }
+    result_.trace_hits.assign(size_t(W) * H, 0.0);
+    result_.trace_n.assign(size_t(W) * H, 0.0);
+    result_.trace_rays.assign(size_t(W) * H, 0.0);
+    result_.trace_lobes.assign(size_t(W) * H, 0.0);
+    result_.trace_pt_lobes.assign(size_t(W) * H, 0.0);
     result_.delta_rays.assign(size_t(W) * H, 0.0);
     result_.delta_sum.assign(size_t(W) * H * 3, 0.0);
     result_.delta_sum_sq.assign(size_t(W) * H * 3, 0.0);
@@ -111,14 +121,17 @@ void RenderJob::run() {
           const uint64_t shift = mix64(shift_key ^ pixel);  // from the seed and pixel only
           double s[3] = {0, 0, 0}, s2[3] = {0, 0, 0}, a[3] = {0, 0, 0}, a2[3] = {0, 0, 0}, hits = 0;
           double ds[3] = {0, 0, 0}, ds2[3] = {0, 0, 0};
+          double ts[Stats::kTraceKs][3] = {}, ts2[Stats::kTraceKs][3] = {}, tvar[Stats::kTraceKs] = {}, thits = 0;
+          double tn = 0;   // samples that recorded the traces
           st.pixel_chain_rate = qmap ? (*qmap)[size_t(y) * W + x] : -1.f;
-          st.pixel_guided_trace = gmap ? (*gmap)[size_t(y) * W + x] > 0.5f : true;
+          st.pixel_trace_k = gmap ? int((*gmap)[size_t(y) * W + x]) : -1;
           st.pixel_chain_m2 = 0.0;
           const int ksplit = kmap ? std::max(1, int((*kmap)[size_t(y) * W + x])) : 1;
           st.split_delta = ksplit > 1;
           const int kpix = smap ? std::max(1, int((*smap)[size_t(y) * W + x])) : 1;
           const uint64_t steps0 = st.chain_steps, walk0 = st.walk_steps, rays0 = st.rays + st.shadow_rays + st.camera_rays;
-          const uint64_t delta0 = st.delta_prefix_rays;
+          const uint64_t delta0 = st.delta_prefix_rays, trace0 = st.trace_rays;
+          const uint64_t lobes0 = st.trace_lobes, pt_lobes0 = st.trace_pt_lobes;
           for (int k = 0; k < cfg_.spp; ++k) {
             // A cancelled pass is dropped whole (never splatted), so stopping
             // mid-tile is safe; checking per sample bounds the overshoot of a
@@ -126,6 +139,11 @@ void RenderJob::run() {
             // estimates took seconds).
             if (cancel_.load(std::memory_order_relaxed)) return;
             PCG32 rng = make_stream(cfg_.seed, cfg_.pass, pixel, uint64_t(k));
+            // the guided trace's record in one sample of kTraceRecordEvery (its
+            // traces, and the path tracer's weights against them, cost about
+            // as much as the sample: in every sample they took a training
+            // iteration's worth of time); which one moves along the pixels
+            st.record_trace = costs && (pixel + uint64_t(k)) % uint64_t(Stats::kTraceRecordEvery) == 0;
             // The pixel split: the sample is the mean of kpix camera samples
             // drawn one after the other from the sample's own random stream
             // (kpix = 1: the plain sample, bit for bit).
@@ -137,6 +155,9 @@ void RenderJob::run() {
                          int64_t((cfg_.sample_offset + uint64_t(k)) * uint64_t(kpix) + uint64_t(sub)), shift);
               st.sample_alt_delta = Color(0.f);
               st.sample_owned_hit = false;
+              for (Color& c : st.sample_trace_hits_delta) c = Color(0.f);
+              for (TraceSample& t : st.sample_traces) t = TraceSample{};
+              st.sample_trace_hit = false;
               st.sample_delta_L = Color(0.f);
               Color Ls = integrator_->Li(scene, o, d, tmin, tmax, rng, st);
               if (ksplit > 1) {
@@ -191,6 +212,30 @@ void RenderJob::run() {
                   a[c] += v;
                   a2[c] += v * v;
                 }
+              // ... and with k = 2^i guided traces (Stats::record_trace): the
+              // value with the two recorded traces in place of k, Z_j = k f_j /
+              // (b_j + k g_j), Y = A + (w_k - 1) hits + (Z_1 + Z_2) / 2, and one
+              // trace's variance (Z_1 - Z_2)^2 / 2 (mean over RGB): k traces'
+              // value has E[(T - I)^2] = E[(Y - I)^2] + (1/k - 1/2) Var(Z)
+              // (mpg.chain_rates.learn_rates_traced)
+              if (st.record_trace) tn += 1.0;
+              if (st.record_trace && ok && (st.sample_owned_hit || st.sample_trace_hit)) thits += 1.0;
+              for (int f = 0; f < Stats::kTraceKs && st.record_trace; ++f) {
+                const int kk = 1 << f;
+                const Color z1 = st.sample_traces[0].weighted(kk) * float(kk);
+                const Color z2 = st.sample_traces[1].weighted(kk) * float(kk);
+                const Color Tv = ok ? A + st.sample_trace_hits_delta[f] + (z1 + z2) * 0.5f : Color(0.f);
+                if (!(std::isfinite(Tv.x) && std::isfinite(Tv.y) && std::isfinite(Tv.z))) continue;
+                double dz = 0.0;
+                for (int c = 0; c < 3; ++c) {
+                  const double v = std::max(double(Tv[c]), 0.0);
+                  ts[f][c] += v;
+                  ts2[f][c] += v * v;
+                  const double d = double(z1[c]) - double(z2[c]);
+                  dz += d * d / 6.0;   // (z1 - z2)^2 / 2, mean over RGB
+                }
+                if (ok && std::isfinite(dz)) tvar[f] += dz;
+              }
             }
           }
           const size_t i = (size_t(y) * W + x) * 3;
@@ -203,12 +248,23 @@ void RenderJob::run() {
             result_.chain_m2[j] = st.pixel_chain_m2;
             result_.chain_steps[j] = double(st.chain_steps - steps0);
             result_.walk_steps[j] = double(st.walk_steps - walk0);
-            result_.rays[j] = double(st.rays + st.shadow_rays + st.camera_rays - rays0);
+            // (the training's guided traces apart: a cost of the rate-0 option alone)
+            result_.trace_rays[j] = double(st.trace_rays - trace0);
+            result_.rays[j] = double(st.rays + st.shadow_rays + st.camera_rays - rays0) - result_.trace_rays[j];
+            result_.trace_hits[j] = thits;
+            result_.trace_n[j] = tn;
+            result_.trace_lobes[j] = double(st.trace_lobes - lobes0);
+            result_.trace_pt_lobes[j] = double(st.trace_pt_lobes - pt_lobes0);
+            for (int f = 0; f < Stats::kTraceKs; ++f) result_.trace_var[f][j] = tvar[f];
             result_.alt_hits[j] = hits;
             result_.delta_rays[j] = double(st.delta_prefix_rays - delta0);
             for (int c = 0; c < 3; ++c) {
               result_.alt_sum[i + c] = a[c];
               result_.alt_sum_sq[i + c] = a2[c];
+              for (int f = 0; f < Stats::kTraceKs; ++f) {
+                result_.trace_sum[f][i + c] = ts[f][c];
+                result_.trace_sum_sq[f][i + c] = ts2[f][c];
+              }
               result_.delta_sum[i + c] = ds[c];
               result_.delta_sum_sq[i + c] = ds2[c];
             }

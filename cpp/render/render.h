@@ -33,6 +33,18 @@ struct PassResult {
   // light seen through delta scattering only (Stats::sample_delta_L) and of
   // its squares, for the variance the delta split divides.
   std::vector<double> chain_m2, chain_steps, walk_steps, rays, alt_sum, alt_sum_sq, alt_hits, delta_rays;
+  // ... trace_sum[i] / trace_sum_sq[i] (height x width x 3): the same samples'
+  // values at rate 0 with k = 2^i guided traces formed from two recorded ones
+  // (Stats::record_trace; equal to alt_* where none ran), trace_var[i] (height
+  // x width): the sums of one scaled trace's variance (Z_1 - Z_2)^2 / 2 (mean
+  // over RGB); trace_n: the samples that recorded them (one in
+  // Stats::kTraceRecordEvery), the sums being over those; trace_hits: of those,
+  // the samples in which the path tracer or a trace found chain light;
+  // trace_rays: the two traces' rays (left out of `rays`); trace_lobes /
+  // trace_pt_lobes: the lobes their densities and the path tracer's weights
+  // against them visited (Stats::trace_lobes)
+  std::vector<double> trace_sum[Stats::kTraceKs], trace_sum_sq[Stats::kTraceKs], trace_var[Stats::kTraceKs];
+  std::vector<double> trace_n, trace_hits, trace_rays, trace_lobes, trace_pt_lobes;
   std::vector<double> delta_sum, delta_sum_sq;
   Stats stats;
   double seconds = 0.0;
@@ -56,9 +68,10 @@ struct PassConfig {
   // everywhere): each sample of the pixel is the mean of k independent camera
   // samples (camera ray, Li, delta split), so its variance is 1/k of one.
   std::shared_ptr<const std::vector<float>> pixel_split_map;
-  // Per-pixel switch of the guided trace in pixels of rate 0 (crop height x
-  // width, 0 or 1; ChainParams::handoff_guided), or null (on wherever the
-  // integrator has it on).
+  // Per-pixel count of guided traces in pixels of rate 0 (crop height x
+  // width, integers 0..64; ChainParams::handoff_guided's k per pixel; 0: off),
+  // or null (the integrator's handoff_guided everywhere). In training passes
+  // (record_costs) 0 also switches off the record of the trace's forms.
   std::shared_ptr<const std::vector<float>> guided_trace_map;
   bool record_costs = false;
   // Pixel positions from a per-pixel randomly shifted Sobol (0,2)-sequence

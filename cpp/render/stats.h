@@ -14,6 +14,29 @@
 
 namespace mpg {
 
+// One guided trace of a handed-off pixel (ChainEstimator::guided_trace_one):
+// f = the light it found through the chain times f_s |cos| and the letters'
+// weights (0: no hit; times the path's throughput where recorded), b and g the
+// path tracer's and the trace's densities of that path.
+struct TraceSample {
+  Color f{0.f};
+  double b = 0.0, g = 0.0;
+  // its share with k traces, by the multi-sample balance heuristic: f / (b + k g)
+  Color weighted(int k) const {
+    // in double: with b = 0 and a tiny g the float of 1 / (b + k g) would
+    // overflow, and inf x a zero channel is NaN (the whole sample rejected)
+    if (is_black(f) || !(g > 0.0) || k < 1 || !std::isfinite(b + g)) return Color(0.f);
+    const double s = 1.0 / (std::max(b, 0.0) + double(k) * g);
+    Color out(0.f);
+    for (int ch = 0; ch < 3; ++ch) {
+      const double v = double(f[ch]) * s;
+      if (!std::isfinite(v) || v > 3.0e38) return Color(0.f);
+      out[ch] = float(v);
+    }
+    return out;
+  }
+};
+
 struct Stats {
   // The pass's cancel flag (set by the render worker, null elsewhere): long
   // loops inside one sample (Bernoulli trials) poll it, so that a cancelled
@@ -29,7 +52,9 @@ struct Stats {
   // RGB): an unbiased estimate of the second moment the roulette multiplies by
   // (1/q - 1) (design-notes "Chain rates per pixel").
   float pixel_chain_rate = -1.f;
-  bool pixel_guided_trace = true;   // PassConfig::guided_trace_map at the pixel
+  // PassConfig::guided_trace_map at the pixel: its count of guided traces in
+  // rate-0 pixels (-1: no map, the integrator's handoff_guided)
+  int pixel_trace_k = -1;
   double pixel_chain_m2 = 0.0;
   // Per camera sample (reset by the render worker): what the sample's value
   // would change by if the path tracer kept the chain paths whole and no chain
@@ -39,6 +64,28 @@ struct Stats {
   // (design-notes "Handing pixels to the path tracer").
   Color sample_alt_delta{0.f};
   bool sample_owned_hit = false;   // ... and whether the path tracer found owned light in the sample
+  // With record_trace (set by the render worker in training passes that
+  // record costs): what the pixel would get at rate 0 with the guided trace
+  // of handed-off pixels, for k = 1, 2, 4, 8 traces (kTraceKs counts, k = 2^i),
+  // from the "path tracer alone" value above. Per k, the change of the path
+  // tracer's own chain paths after the first separator, (w_k - 1) times each
+  // (w_k its balance weight against k traces); and two traces drawn at that
+  // separator (throughput included), from which the render worker forms each
+  // k's value and the variance of one trace (design-notes "The rates choose
+  // the guided trace"). Whether the path tracer or a trace found chain light,
+  // and the traces' rays (counted in `rays` too).
+  static constexpr int kTraceKs = 4;
+  static constexpr int kTraceRecorded = 2;
+  static constexpr int kTraceRecordEvery = 4;   // samples per one that records (render.cpp)
+  bool record_trace = false;
+  Color sample_trace_hits_delta[kTraceKs] = {};
+  TraceSample sample_traces[kTraceRecorded];
+  bool sample_trace_hit = false;
+  uint64_t trace_rays = 0;
+  // ... the lobes the traces' densities visited (ChainDistribution::pdf_dir,
+  // one dot product each: a leaf of 3 000 lobes costs ~20 rays), and those of
+  // the path tracer's weights against them (trace_pt_lobes); counted always
+  uint64_t trace_lobes = 0, trace_pt_lobes = 0;
   // Per camera sample: the part of its value from the light seen through delta
   // scattering only (PathParams::CameraDelta), recorded in every sample. With
   // split_delta (set per pixel by the render worker when its delta-split count
@@ -135,6 +182,9 @@ struct Stats {
     chain_skipped += o.chain_skipped;
     chain_handed += o.chain_handed;
     guided_traces += o.guided_traces;
+    trace_rays += o.trace_rays;
+    trace_lobes += o.trace_lobes;
+    trace_pt_lobes += o.trace_pt_lobes;
     guided_trace_hits += o.guided_trace_hits;
     subpaths.insert(subpaths.end(), o.subpaths.begin(), o.subpaths.end());
     if (o.max_chain_value > max_chain_value) {

@@ -73,12 +73,31 @@ HANDOFF_MIN_HITS = 64
 HANDOFF_NEGLIGIBLE = 1e-3
 
 
+# Time of one lobe of a guided-trace density (ChainDistribution::pdf_dir: a
+# dot product and a test per lobe, the exponential for the few near) in units
+# of one path-tracer ray: 2.4-2.5 ns per lobe over leaves of 2 700-3 000 lobes
+# against 336 ns per ray of `path` (shading included), pool at 64^2, one
+# thread (the fifteenth session's measurement). A focus leaf's 3 000 lobes
+# cost ~20 rays a density: the traces' hits and the path tracer's weights
+# pay it, and counted as rays alone the traces looked 1.5x cheaper than they
+# were (slab: 308 -> 202 spp).
+LOBE_COST = 1.0 / 128.0
+
+# The counts of guided traces a rate-0 pixel may get (learn_rates_traced): the
+# k of Stats::kTraceKs, each formed in training from two recorded traces.
+TRACE_KS = (1, 2, 4, 8)
+# ... and the traces recorded per training sample
+TRACES_RECORDED = 2
+
+
 class CostAccumulator:
     """Per-pixel sums over training passes (crop height x width)."""
 
     # the arrays a record_costs pass returns under these names, summed as they are
     PASS_SUMS = ("sum", "sum_sq", "chain_m2", "chain_steps", "walk_steps", "rays", "alt_sum",
-                 "alt_sum_sq", "alt_hits", "delta_rays", "delta_sum", "delta_sum_sq")
+                 "alt_sum_sq", "alt_hits", "delta_rays", "delta_sum", "delta_sum_sq",
+                 "trace_n", "trace_hits", "trace_rays", "trace_lobes", "trace_pt_lobes") + tuple(
+                     f"trace{k}_{x}" for k in TRACE_KS for x in ("sum", "sum_sq", "var"))
 
     def __init__(self, shape: tuple[int, int]):
         self.n = 0
@@ -97,6 +116,19 @@ class CostAccumulator:
         # the samples' light seen through delta scattering only (Stats::sample_delta_L): sums and squares
         self.delta_sum = np.zeros(shape + (3,))
         self.delta_sum_sq = np.zeros(shape + (3,))
+        # the samples' values at rate 0 with k guided traces (Stats::record_trace;
+        # = alt_* where none ran) formed from two recorded traces, and the sums
+        # of one trace's variance, per k in TRACE_KS (trace<k>_*); the samples
+        # in which the path tracer or a trace found chain light; the traces' rays
+        for k in TRACE_KS:
+            setattr(self, f"trace{k}_sum", np.zeros(shape + (3,)))
+            setattr(self, f"trace{k}_sum_sq", np.zeros(shape + (3,)))
+            setattr(self, f"trace{k}_var", np.zeros(shape))
+        self.trace_n = np.zeros(shape)   # the samples that recorded them (one in four)
+        self.trace_hits = np.zeros(shape)
+        self.trace_rays = np.zeros(shape)
+        self.trace_lobes = np.zeros(shape)      # the lobes their densities visited (LOBE_COST)
+        self.trace_pt_lobes = np.zeros(shape)   # ... and the path tracer's weights against them
 
     def add(self, result: dict, spp: int, q: float | np.ndarray) -> None:
         self.n += spp
@@ -134,12 +166,16 @@ def _sample_variance(s, s2, n: float) -> np.ndarray:
     return np.maximum(_finite(s2) / n - m * m, 0.0).mean(axis=2) * (n / (n - 1))
 
 
-def _alt_mse(acc: "CostAccumulator", n: float, mean: np.ndarray) -> np.ndarray:
+def _alt_mse(acc: "CostAccumulator", n, mean: np.ndarray, pre: str = "alt") -> np.ndarray:
     """Per-pixel E[(A - I)^2] (mean over RGB) of the path tracer alone's values A
-    about the training mean I, scaled by n / (n - 1) as _sample_variance is:
-    where A = L the two are equal."""
-    a_mean = _finite(acc.alt_sum) / n
-    a_m2 = _finite(acc.alt_sum_sq) / n
+    (pre "trace<k>": with two traces weighted for k) about the training mean
+    I, scaled by n / (n - 1) as _sample_variance is: where A = L the two are equal."""
+    n = np.asarray(n, dtype=float)
+    if n.ndim:   # per pixel (the traces' records, n >= 2 where there are any)
+        n = np.maximum(n, 2.0)
+    nc = n[..., None] if n.ndim else n
+    a_mean = _finite(getattr(acc, pre + "_sum")) / nc
+    a_m2 = _finite(getattr(acc, pre + "_sum_sq")) / nc
     return np.maximum(a_m2 - 2.0 * a_mean * mean + mean * mean, 0.0).mean(axis=2) * (n / (n - 1))
 
 
@@ -170,7 +206,22 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
                 iterations: int = 50, objective: str = "relmse",
                 handoff: bool = True, min_hits: float = HANDOFF_MIN_HITS,
                 negligible: float = HANDOFF_NEGLIGIBLE) -> tuple[np.ndarray, dict]:
-    """Per-pixel rates by Eq. (1) of the module docstring, and a summary.
+    """Per-pixel rates by Eq. (1) of the module docstring, and a summary
+    (learn_rates_traced without its map of the guided trace)."""
+    q, _, info = learn_rates_traced(acc, q_min=q_min, radius=radius, iterations=iterations,
+                                    objective=objective, handoff=handoff, min_hits=min_hits,
+                                    negligible=negligible)
+    return q, info
+
+
+def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
+                       iterations: int = 50, objective: str = "relmse",
+                       handoff: bool = True, min_hits: float = HANDOFF_MIN_HITS,
+                       negligible: float = HANDOFF_NEGLIGIBLE,
+                       trace_k: int = 0) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Per-pixel rates by Eq. (1) of the module docstring, the count of guided
+    traces of handed-off pixels per pixel (0 or one of TRACE_KS; only rate-0
+    pixels trace), and a summary.
 
     M_p and c1_p are averaged over a (2 radius + 1)^2 window first: a pixel of a
     short training run holds a handful of chain estimates.
@@ -180,12 +231,31 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
     tracer keeps the chain paths it finds whole (Eq. (2) of the module
     docstring), if its window holds at least min_hits samples in which the
     path tracer found the chains' light, or the chains' light there is
-    negligible."""
+    negligible.
+
+    Where the training passes recorded the guided trace (acc.trace_rays > 0)
+    and trace_k > 0 (handoff_guided), rate 0 has more forms: the path tracer
+    with k = 1, 2, 4 or 8 guided traces at the first separator
+    (Stats::record_trace). Training drew two traces a sample; Y_k, the value
+    with the two weighted for k and averaged, has the mean of the k traces'
+    value T_k, and E[(T_k - I)^2] = E[(Y_k - I)^2] + (1/k - 1/2) Var(Z_k),
+    Z_k = k f / (b + k g) one trace's share scaled to the whole, whose
+    variance the pair gives ((Z_1 - Z_2)^2 / 2). Its excess variance is then
+    taken as dv is from the path tracer alone's, at k / 2 of the recorded
+    traces' rays added to the cost. A pixel takes the form with the smallest
+    share of F (the same linearised rule); the trace forms need min_hits
+    samples in the window in which the path tracer or a trace found chain
+    light, and chain light that is not negligible. The traces are recorded in
+    one sample of four (acc.trace_n; their cost took a training iteration's
+    worth of time when every sample recorded them), and the hits counted are
+    theirs. A trace form's cost is k traces' rays and lobes (LOBE_COST) and
+    the path tracer's weights' lobes. trace_k = 0: the path tracer alone
+    only."""
     shape = acc.chain_m2.shape
     info: dict = {"chain_rate_min_allowed": q_min}
     if acc.n < 2:
         info["chain_rate_learned"] = False
-        return np.ones(shape, dtype=np.float32), info
+        return np.ones(shape, dtype=np.float32), np.zeros(shape, dtype=np.float32), info
     n = float(acc.n)
 
     finite = _finite
@@ -211,6 +281,9 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
     dv_b = np.zeros(shape)
     mis_b = _box_blur(mis, radius)
     eligible = np.zeros(shape, dtype=bool)
+    # rate 0's forms after the path tracer alone (form 1): (traces, excess
+    # variance, cost added, eligible) of forms 2, 3
+    traced: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
     if handoff:
         alt_mse = _alt_mse(acc, n, mean)
         # V1 = w var_t - (1/q_t - 1) M, the pixel's variance at q = 1 (weighted)
@@ -225,14 +298,50 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
         # window mean of every pixel around it, and the whole 7x7 window lost
         # its caustic to the path tracer, which never finds that light (black
         # squares, relMSE 0.83-0.91 against sms_star's 0.04-0.08)
-        eligible = has & ((_box_blur(finite(acc.alt_hits), radius, total=True) >= min_hits) |
-                          _negligible_chain_light(m2_raw, var_t, radius, negligible))
+        negl = _negligible_chain_light(m2_raw, var_t, radius, negligible)
+        eligible = has & ((_box_blur(finite(acc.alt_hits), radius, total=True) >= min_hits) | negl)
+        if trace_k > 0 and float(np.sum(finite(acc.trace_rays))) > 0.0:
+            # the guided trace's forms of rate 0 (the traces' rays per sample added)
+            # (recorded in one sample of four, whose hits must reach min_hits.
+            # Their rare large values -- g small where the lobes miss part of a
+            # small light's image -- are what a short record misses: pool's
+            # traced pixels rendered 14x the chains' variance where the record
+            # had seen the traces 3x better; requiring the path tracer's own
+            # min_hits as well left no traced pixel on double_slabs either.
+            # Hence learn_trace is off by default: design-notes.)
+            n_t = np.maximum(finite(acc.trace_n), 1.0)
+            el = has & ~negl & (_box_blur(finite(acc.trace_hits), radius, total=True) >= min_hits)
+            # one trace's cost per sample, and the path tracer's weights' (any k)
+            ray1 = (finite(acc.trace_rays) + LOBE_COST * finite(acc.trace_lobes)) / (n_t * TRACES_RECORDED)
+            pt_w = LOBE_COST * finite(acc.trace_pt_lobes) / n_t
+            for k in TRACE_KS:
+                mse_k = _alt_mse(acc, finite(acc.trace_n), mean, f"trace{k}") + \
+                    (1.0 / k - 1.0 / TRACES_RECORDED) * finite(getattr(acc, f"trace{k}_var")) / n_t
+                dvt = _box_blur(wgt * np.maximum(mse_k, 0.0) - wgt * var_t + (1.0 / q_t - 1.0) * m2,
+                                radius, nonneg=False)
+                traced.append((k, dvt, _box_blur(k * ray1 + pt_w, radius), el))
+    forms_dv = [dv_b] + [t[1] for t in traced]
+    forms_dc = [-mis_b] + [t[2] - mis_b for t in traced]
+    forms_ok = [eligible] + [t[3] for t in traced]
 
     def means(q, pt):
-        """mean(wV) and mean(C) of a map (blurred M, c1, dv: what the choices see)."""
-        v = v1_mean + float(np.mean(np.where(pt, dv_b, (1.0 / q - 1.0) * m2_b)))
-        c = float(np.mean(c0 + np.where(pt, -mis_b, q * c1_b)))
+        """mean(wV) and mean(C) of a map (blurred M, c1, dv: what the choices
+        see); pt per pixel: 0 rate q, 1 the path tracer alone, 2 with the trace."""
+        conds = [pt == f + 1 for f in range(len(forms_dv))]
+        v = v1_mean + float(np.mean(np.select(conds, forms_dv, (1.0 / q - 1.0) * m2_b)))
+        c = float(np.mean(c0 + np.select(conds, forms_dc, q * c1_b)))
         return v, c
+
+    def zero_form(v_mean, c_mean):
+        """Per pixel the best form of rate 0 (1, 2, ...; 0 where none may) and its share."""
+        form = np.zeros(shape, dtype=np.int8)
+        best = np.full(shape, np.inf)
+        for f, (dv, dc, ok) in enumerate(zip(forms_dv, forms_dc, forms_ok)):
+            g = np.where(ok, dv * c_mean + dc * v_mean, np.inf)
+            better = g < best
+            form = np.where(better, f + 1, form).astype(np.int8)
+            best = np.where(better, g, best)
+        return form, best
 
     def model_f(cand):
         """F = mean(wV) mean(C) of a (q, pt) map; inf where a mean is not positive."""
@@ -243,7 +352,7 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
 
     def fixed_point(allow_pt):
         q = np.ones(shape)
-        pt = np.zeros(shape, dtype=bool)
+        pt = np.zeros(shape, dtype=np.int8)
         for _ in range(iterations):
             v_mean, c_mean = means(q, pt)
             if not (v_mean > 0.0 and c_mean > 0.0):
@@ -254,26 +363,28 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
                 # the pixel's share of F = mean(V) mean(C), linearised: rate q
                 # adds (1/q - 1) M C + q c1 V, rate 0 adds dv C - mis V
                 g_q = (1.0 / q_new - 1.0) * m2_b * c_mean + q_new * c1_b * v_mean
-                pt_new = eligible & (dv_b * c_mean - mis_b * v_mean < g_q)
+                form, g0 = zero_form(v_mean, c_mean)
+                pt_new = np.where(g0 < g_q, form, 0).astype(np.int8)
             if np.max(np.abs(q_new - q)) < 1e-4 and np.array_equal(pt_new, pt):
                 return q_new, pt_new
             q, pt = q_new, pt_new
         return q, pt
 
-    q, pt = np.ones(shape), np.zeros(shape, dtype=bool)
+    q, pt = np.ones(shape), np.zeros(shape, dtype=np.int8)
     if np.any(has):
         q, pt = fixed_point(False)
-        if handoff and np.any(eligible):
+        if handoff and any(np.any(ok) for ok in forms_ok):
             # F is not convex once pixels switch between options, and the
             # linearised fixed point can stop short: keep the best of it, the
             # map without rate 0, and that map with every eligible pixel at 0
-            cands = [(q, pt), fixed_point(True), (q, eligible.copy())]
+            # (in its better form at the first map's means)
+            cands = [(q, pt), fixed_point(True), (q, zero_form(*means(q, pt))[0])]
             q, pt = min(cands, key=model_f)
     v_model, c_model = means(q, pt)
     # pixels without chain work keep 1: the rate is never used there
     q = np.where(has & np.isfinite(q), q, 1.0)
-    q = np.where(pt, 0.0, q)
-    on = has & ~pt
+    q = np.where(pt > 0, 0.0, q)
+    on = has & (pt == 0)
     # How a change of the chain estimates' second moment (dM, summed over
     # pixels, at rate 1) and of their walks' work (dS, at the training rate)
     # carries over to the render's map: mean(wV) moves by dM m_scale / pixels
@@ -295,9 +406,13 @@ def learn_rates(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: int = 3,
         chain_rate_mean=float(np.mean(q[on])) if np.any(on) else 1.0,
         chain_rate_fraction_one=float(np.mean(q[has] >= 1.0)) if np.any(has) else 1.0,
         chain_rate_fraction_min=float(np.mean(on[has] & (q[has] <= q_min))) if np.any(has) else 0.0,
-        chain_rate_fraction_pt=float(np.mean(pt[has])) if np.any(has) else 0.0,
+        chain_rate_fraction_pt=float(np.mean(pt[has] > 0)) if np.any(has) else 0.0,
+        chain_rate_fraction_trace=float(np.mean(pt[has] >= 2)) if np.any(has) else 0.0,
     )
-    return q.astype(np.float32), info
+    kmap = np.zeros(shape, dtype=np.float32)
+    for f, t in enumerate(traced):
+        kmap[pt == f + 2] = t[0]
+    return q.astype(np.float32), kmap, info
 
 
 # The delta split (learn_delta_split): at most this many camera paths per

@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 
 from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, STEP_COST, CostAccumulator, _sample_variance,
-                             guided_trace_map, learn_delta_split, learn_pixel_split, learn_rates)
+                             guided_trace_map, learn_delta_split, learn_pixel_split, learn_rates,
+                             learn_rates_traced)
 from mpg.errors import RenderError
 
 
@@ -57,6 +58,11 @@ KNOWN_TYPES = True
 # 1.21x lower with 1, 1.32x with 4, 16 worse than 4 (docs/results.md,
 # fourteenth session).
 HANDOFF_GUIDED = 4
+# The training measures the guided trace, and the rates choose where it runs
+# (learn_trace): off by default, the traces' rare large values escape the
+# training's record where the light is small (pool 8x worse; design-notes
+# "The rates choose the guided trace")
+LEARN_TRACE = False
 # The pixel split's default (learned for MSE) and the cap on its predicted cost
 # per sample (design-notes "Splitting the pixels"; docs/results.md, eleventh session)
 PIXEL_SPLIT = "mse"
@@ -212,6 +218,12 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # training never saw"); training passes keep every type, to find them
     params["known_types"] = _as_bool("known_types", params.pop("known_types", KNOWN_TYPES))
     params["handoff_guided"] = int(params.pop("handoff_guided", HANDOFF_GUIDED))
+    # learn_trace: the training passes also record each sample's value with the
+    # guided trace (Stats::record_trace), and the learned rates choose per pixel
+    # between the path tracer alone and the path tracer with the trace at rate
+    # 0 (chain_rates.learn_rates_traced); off: the trace runs in every rate-0
+    # pixel whose chain light is not negligible (chain_rates.guided_trace_map)
+    learn_trace = _as_bool("learn_trace", params.pop("learn_trace", LEARN_TRACE))
     params["step_halvings"] = -1 if auto_halvings else int(halvings)
     init = str(params.pop("init", "surface"))
     n_photons = int(params.pop("photons", 200_000))
@@ -310,6 +322,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         if auto:
             cam = scene.desc.camera
             costs = CostAccumulator((int(cam.crop[3]), int(cam.crop[2])))
+        # (a training pass's guided_trace_map switches its trace records: Stats::record_trace)
+        no_trace = np.zeros((int(scene.desc.camera.crop[3]), int(scene.desc.camera.crop[2])), dtype=np.float32)
         while True:
             used_t = _time.monotonic() - t0
             if budget_spp is not None and (spp_train + k > budget_spp or spp_train >= budget_spp / 2):
@@ -329,7 +343,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                                                             count_limits=auto_halvings,
                                                             guide_fraction=train_alpha))
             job = _core.RenderJob(core, integ, k, seed, 1_000_000 + iterations, threads or 0,
-                                  record_costs=auto)
+                                  record_costs=auto, guided_trace_map=None if learn_trace else no_trace)
             while not job.wait(0.05):
                 if budget_t is not None and _time.monotonic() - t0 > budget_t:
                     job.cancel()
@@ -397,11 +411,12 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         return qmap if qmap is not None else uniform(params["chain_rate"])
 
     if costs is not None:
-        qmap, rate_info = learn_rates(costs, q_min=q_min, objective=objective, handoff=handoff,
-                                      negligible=negligible)
+        qmap, tmap, rate_info = learn_rates_traced(costs, q_min=q_min, objective=objective, handoff=handoff,
+                                                   negligible=negligible,
+                                                   trace_k=params["handoff_guided"] if learn_trace else 0)
         if not rate_info.get("chain_rate_learned"):
             # too little training (< 2 spp): the training rate throughout
-            qmap, rate_info = None, {}
+            qmap, tmap, rate_info = None, None, {}
         if split == "auto" and costs.n > 0:
             kmap = learned(*learn_delta_split(costs, rates(), objective=objective,
                                               branched=params["delta_branch"] > 0))
@@ -425,8 +440,14 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     rest_t = None if time is None else max(0.05, time - seconds_training)
     gmap = None
     if params.get("handoff_guided") and qmap is not None and np.any(qmap <= 0.0):
-        gmap = guided_trace_map(costs, negligible=negligible)
-        rate_info["guided_trace_fraction"] = float(np.mean(gmap[qmap <= 0.0]))
+        if learn_trace and float(np.sum(costs.trace_rays)) > 0.0:
+            # the training measured the trace: the rates chose where it pays
+            gmap = tmap   # (its traces per pixel: 0 or one of chain_rates.TRACE_KS)
+        else:   # (no guide before the last training pass) where the chains' light is not negligible
+            gmap = guided_trace_map(costs, negligible=negligible) * float(params["handoff_guided"])
+        rate_info["guided_trace_fraction"] = float(np.mean(gmap[qmap <= 0.0] > 0))
+        traced = gmap[(qmap <= 0.0) & (gmap > 0)]
+        rate_info["guided_trace_mean_k"] = float(np.mean(traced)) if traced.size else 0.0
     img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
                  chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap, sampler=sampler,
