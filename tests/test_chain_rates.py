@@ -533,6 +533,9 @@ def test_training_records_the_guided_trace_forms_of_rate_zero(scenes_dir):
         assert r[pre + "_var"].sum() > 0
     assert r["trace_rays"].sum() > 0 and r["trace_hits"].sum() > r["alt_hits"].sum() > 0
     assert r["trace_lobes"].sum() > 0 and r["trace_pt_lobes"].sum() > 0   # (their cost, LOBE_COST)
+    # the traces' rays are the rate-0 option's cost, not the pass's: left out of `rays`
+    st = r["stats"]
+    assert r["rays"].sum() + r["trace_rays"].sum() == st["rays"] + st["shadow_rays"] + st["camera_rays"]
     zero = np.zeros((24, 24), np.float32)
     for k in (1, 8):
         mean = r["sum"] / n
@@ -559,7 +562,8 @@ def test_rates_choose_the_guided_trace_where_it_pays():
     one; where the traces find nothing new, the path tracer alone; where the
     window saw too few hits, no trace; the pair's variance term moves the
     choice (k = 1 pays (1 - 1/2) of it, k = 8 saves (1/2 - 1/8)); with
-    trace_k = 0 the traces' records are ignored (the rates of learn_rates)."""
+    trace False the traces' records are ignored: the rates do not move when
+    the records do."""
     from mpg.chain_rates import learn_rates_traced
     h, w = 6, 30
     m2 = np.full((h, w), 40.0)
@@ -585,15 +589,18 @@ def test_rates_choose_the_guided_trace_where_it_pays():
     a.alt_hits[:, 18:24] = 3.0
     # as 6-11, but one trace's variance 2: k = 1 has 0.3 + 1, k = 8 0.3 - 0.75 -> 0
     put(np.s_[24:30], (0.3, 0.3, 0.3, 0.3), var_z=2.0)
-    q, kmap, info = learn_rates_traced(a, radius=0, objective="mse", trace_k=4)
+    q, kmap, info = learn_rates_traced(a, radius=0, objective="mse", trace=True)
     assert np.all(q[:, :18] == 0.0) and np.all(q[:, 24:] == 0.0)
     assert np.all(kmap[:, 0:6] == 8) and np.all(kmap[:, 6:12] == 1) and np.all(kmap[:, 12:18] == 0)
     assert np.all(q[:, 18:24] > 0) and np.all(kmap[:, 18:24] == 0)
     assert np.all(kmap[:, 24:30] > 1)
     assert info["chain_rate_fraction_trace"] == pytest.approx(0.6)
-    q0, k0, info0 = learn_rates_traced(a, radius=0, objective="mse", trace_k=0)
-    q_plain, _ = learn_rates(a, radius=0, objective="mse")
-    assert np.array_equal(q0, q_plain) and not np.any(k0)
+    q0, k0, _ = learn_rates_traced(a, radius=0, objective="mse", trace=False)
+    assert not np.any(k0)
+    for k in (1, 2, 4, 8):   # ... and records that would make the traces perfect change nothing
+        getattr(a, f"trace{k}_sum_sq")[...] = 9.0 * n
+    q1, k1, _ = learn_rates_traced(a, radius=0, objective="mse", trace=False)
+    assert np.array_equal(q0, q1) and not np.any(k1)
 
 
 def test_learn_trace_renders_end_to_end_and_is_deterministic(scenes_dir):
@@ -608,7 +615,7 @@ def test_learn_trace_renders_end_to_end_and_is_deterministic(scenes_dir):
     b = mpg.render(sc, integrator=p, spp=32, seed=3, threads=2, progress=False)
     assert np.array_equal(a.rgb, b.rgb)
     st = a.stats
-    assert "chain_rate_fraction_trace" in st and st["chain_rate_learned"]
+    assert st["chain_rate_learned"] and st["trace_records"] > 0
     if st.get("guided_trace_fraction", 0.0) > 0:
         assert min(TRACE_KS) <= st["guided_trace_mean_k"] <= max(TRACE_KS)
     off = mpg.render(sc, integrator="mpg", spp=32, seed=3, progress=False)

@@ -36,6 +36,9 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   // pass's guided_trace_map does not switch it off
   const bool trace_alt = chains_ && st.record_trace && st.pixel_chain_rate != 0.f && st.pixel_trace_k != 0 &&
                          chains_->guided_trace_on();
+  // (the sample records the traces' values whatever its path: a condition of
+  // the pass and pixel, so that the recorded samples are a fair subset)
+  if (trace_alt) st.sample_trace_recorded = true;
   // The rate-0 pixel's count of guided traces
   const int trace_k = !chains_ ? 0 : (st.pixel_trace_k < 0 ? chains_->handoff_guided() : st.pixel_trace_k);
   // ... a chain path after the first separator: the traces' weight replaces

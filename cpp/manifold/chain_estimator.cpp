@@ -703,9 +703,10 @@ ChainEstimator::TraceSample ChainEstimator::guided_trace_one(const SurfaceIntera
   // shapes (each lobe forced, weighted by its probability as in delta_tree) and
   // must end on light k. Its density g per solid angle at x_D (and letter
   // choice) is guided_trace_pdf; the path tracer's b = pdf_bsdf(omega_D) times
-  // its Fresnel choices (pt_letters_pdf's rule). Balance heuristic with k
-  // traces: contribution = throughput * Le / (b + k g). The random numbers are drawn up
-  // front, a fixed count per call.
+  // its Fresnel choices (pt_letters_pdf's rule). Returned unweighted, (f =
+  // throughput * Le, b, g): with k traces each contributes f / (b + k g)
+  // (TraceSample::weighted). The random numbers are drawn up front, a fixed
+  // count per call. (k below is the light's index, not a count of traces.)
   const int nmax = max_len(depth, max_depth);
   float u_light = rng.next_float();  // (sample() reuses it)
   const float u_n = rng.next_float(), u_t = rng.next_float();

@@ -202,7 +202,7 @@ class ChainEstimator {
   // path's throughput by the caller).
   Color guided_trace(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth, uint32_t max_depth,
                      int k, PCG32& rng, Stats& st) const;
-  // One of guided_trace's k traces.
+  // One of guided_trace's traces, unweighted (f, b, g; TraceSample::weighted).
   TraceSample guided_trace_one(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
                                uint32_t max_depth, PCG32& rng, Stats& st) const;
   // The densities b (path tracer) and g (one trace) of a path the path tracer

@@ -158,6 +158,7 @@ void RenderJob::run() {
               for (Color& c : st.sample_trace_hits_delta) c = Color(0.f);
               for (TraceSample& t : st.sample_traces) t = TraceSample{};
               st.sample_trace_hit = false;
+              st.sample_trace_recorded = false;
               st.sample_delta_L = Color(0.f);
               Color Ls = integrator_->Li(scene, o, d, tmin, tmax, rng, st);
               if (ksplit > 1) {
@@ -218,9 +219,12 @@ void RenderJob::run() {
               // trace's variance (Z_1 - Z_2)^2 / 2 (mean over RGB): k traces'
               // value has E[(T - I)^2] = E[(Y - I)^2] + (1/k - 1/2) Var(Z)
               // (mpg.chain_rates.learn_rates_traced)
-              if (st.record_trace) tn += 1.0;
-              if (st.record_trace && ok && (st.sample_owned_hit || st.sample_trace_hit)) thits += 1.0;
-              for (int f = 0; f < Stats::kTraceKs && st.record_trace; ++f) {
+              // (a pass without a guide, or a pixel at rate 0, records none: not counted)
+              static_assert(Stats::kTraceRecorded == 2, "the values below are formed from two traces");
+              const bool rec = st.record_trace && st.sample_trace_recorded;
+              if (rec) tn += 1.0;
+              if (rec && ok && (st.sample_owned_hit || st.sample_trace_hit)) thits += 1.0;
+              for (int f = 0; f < Stats::kTraceKs && rec; ++f) {
                 const int kk = 1 << f;
                 const Color z1 = st.sample_traces[0].weighted(kk) * float(kk);
                 const Color z2 = st.sample_traces[1].weighted(kk) * float(kk);

@@ -35,7 +35,7 @@ struct PassResult {
   std::vector<double> chain_m2, chain_steps, walk_steps, rays, alt_sum, alt_sum_sq, alt_hits, delta_rays;
   // ... trace_sum[i] / trace_sum_sq[i] (height x width x 3): the same samples'
   // values at rate 0 with k = 2^i guided traces formed from two recorded ones
-  // (Stats::record_trace; equal to alt_* where none ran), trace_var[i] (height
+  // (Stats::record_trace; the path tracer alone's values where none ran), trace_var[i] (height
   // x width): the sums of one scaled trace's variance (Z_1 - Z_2)^2 / 2 (mean
   // over RGB); trace_n: the samples that recorded them (one in
   // Stats::kTraceRecordEvery), the sums being over those; trace_hits: of those,

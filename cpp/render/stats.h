@@ -75,12 +75,13 @@ struct Stats {
   // the guided trace"). Whether the path tracer or a trace found chain light,
   // and the traces' rays (counted in `rays` too).
   static constexpr int kTraceKs = 4;
-  static constexpr int kTraceRecorded = 2;
+  static constexpr int kTraceRecorded = 2;   // (render.cpp forms the values from exactly two)
   static constexpr int kTraceRecordEvery = 4;   // samples per one that records (render.cpp)
   bool record_trace = false;
   Color sample_trace_hits_delta[kTraceKs] = {};
   TraceSample sample_traces[kTraceRecorded];
   bool sample_trace_hit = false;
+  bool sample_trace_recorded = false;   // ... the sample's path could record them (path.cpp's trace_alt)
   uint64_t trace_rays = 0;
   // ... the lobes the traces' densities visited (ChainDistribution::pdf_dir,
   // one dot product each: a leaf of 3 000 lobes costs ~20 rays), and those of
@@ -146,7 +147,7 @@ struct Stats {
   uint64_t chain_inactive = 0;       // separators skipped by selective activation
   uint64_t chain_skipped = 0;        // separators skipped by the roulette (chain_rate < 1)
   uint64_t chain_handed = 0;         // separators in pixels of rate 0 (the path tracer's light whole)
-  uint64_t guided_traces = 0;        // handoff_guided: traces drawn from a leaf in rate-0 pixels
+  uint64_t guided_traces = 0;        // handoff_guided: traces drawn from a leaf in rate-0 pixels (and training's records)
   uint64_t guided_trace_hits = 0;    // ... that reached their light through the drawn letters
   std::vector<SubpathSample> subpaths;  // recorded in training passes
   // the largest chain estimate (luminance) and its factors: where the heavy tail comes from

@@ -75,9 +75,9 @@ HANDOFF_NEGLIGIBLE = 1e-3
 
 # Time of one lobe of a guided-trace density (ChainDistribution::pdf_dir: a
 # dot product and a test per lobe, the exponential for the few near) in units
-# of one path-tracer ray: 2.4-2.5 ns per lobe over leaves of 2 700-3 000 lobes
-# against 336 ns per ray of `path` (shading included), pool at 64^2, one
-# thread (the fifteenth session's measurement). A focus leaf's 3 000 lobes
+# of one path-tracer ray: 2.1-2.8 ns per lobe over leaves of 2 700-3 000 lobes
+# against 334-336 ns per ray of `path` (shading included), pool at 64^2, one
+# thread (python bench/trace_diagnostics.py lobes pool, fifteenth session). A focus leaf's 3 000 lobes
 # cost ~20 rays a density: the traces' hits and the path tracer's weights
 # pay it, and counted as rays alone the traces looked 1.5x cheaper than they
 # were (slab: 308 -> 202 spp).
@@ -117,7 +117,8 @@ class CostAccumulator:
         self.delta_sum = np.zeros(shape + (3,))
         self.delta_sum_sq = np.zeros(shape + (3,))
         # the samples' values at rate 0 with k guided traces (Stats::record_trace;
-        # = alt_* where none ran) formed from two recorded traces, and the sums
+        # over the recorded samples, the path tracer alone's where no trace
+        # ran) formed from two recorded traces, and the sums
         # of one trace's variance, per k in TRACE_KS (trace<k>_*); the samples
         # in which the path tracer or a trace found chain light; the traces' rays
         for k in TRACE_KS:
@@ -166,17 +167,21 @@ def _sample_variance(s, s2, n: float) -> np.ndarray:
     return np.maximum(_finite(s2) / n - m * m, 0.0).mean(axis=2) * (n / (n - 1))
 
 
-def _alt_mse(acc: "CostAccumulator", n, mean: np.ndarray, pre: str = "alt") -> np.ndarray:
+def _alt_mse(acc: "CostAccumulator", n, mean: np.ndarray, pre: str = "alt", n_all: float | None = None) -> np.ndarray:
     """Per-pixel E[(A - I)^2] (mean over RGB) of the path tracer alone's values A
     (pre "trace<k>": with two traces weighted for k) about the training mean
-    I, scaled by n / (n - 1) as _sample_variance is: where A = L the two are equal."""
+    I, scaled by n / (n - 1) as _sample_variance is: where A = L the two are equal.
+    n may be per pixel (the traces' records, a subset of the n_all samples
+    whose mean I is): the mean is over those, the correction n_all / (n_all - 1)
+    (I is the mean of all of them, whatever the subset's size)."""
     n = np.asarray(n, dtype=float)
     if n.ndim:   # per pixel (the traces' records, n >= 2 where there are any)
         n = np.maximum(n, 2.0)
     nc = n[..., None] if n.ndim else n
     a_mean = _finite(getattr(acc, pre + "_sum")) / nc
     a_m2 = _finite(getattr(acc, pre + "_sum_sq")) / nc
-    return np.maximum(a_m2 - 2.0 * a_mean * mean + mean * mean, 0.0).mean(axis=2) * (n / (n - 1))
+    nn = n if n_all is None else n_all
+    return np.maximum(a_m2 - 2.0 * a_mean * mean + mean * mean, 0.0).mean(axis=2) * (nn / (nn - 1))
 
 
 def _costs(acc: "CostAccumulator", n: float) -> tuple:
@@ -218,7 +223,7 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
                        iterations: int = 50, objective: str = "relmse",
                        handoff: bool = True, min_hits: float = HANDOFF_MIN_HITS,
                        negligible: float = HANDOFF_NEGLIGIBLE,
-                       trace_k: int = 0) -> tuple[np.ndarray, np.ndarray, dict]:
+                       trace: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
     """Per-pixel rates by Eq. (1) of the module docstring, the count of guided
     traces of handed-off pixels per pixel (0 or one of TRACE_KS; only rate-0
     pixels trace), and a summary.
@@ -234,7 +239,7 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
     negligible.
 
     Where the training passes recorded the guided trace (acc.trace_rays > 0)
-    and trace_k > 0 (handoff_guided), rate 0 has more forms: the path tracer
+    and `trace` is set (learn_trace), rate 0 has more forms: the path tracer
     with k = 1, 2, 4 or 8 guided traces at the first separator
     (Stats::record_trace). Training drew two traces a sample; Y_k, the value
     with the two weighted for k and averaged, has the mean of the k traces'
@@ -249,7 +254,7 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
     one sample of four (acc.trace_n; their cost took a training iteration's
     worth of time when every sample recorded them), and the hits counted are
     theirs. A trace form's cost is k traces' rays and lobes (LOBE_COST) and
-    the path tracer's weights' lobes. trace_k = 0: the path tracer alone
+    the path tracer's weights' lobes. trace False: the path tracer alone
     only."""
     shape = acc.chain_m2.shape
     info: dict = {"chain_rate_min_allowed": q_min}
@@ -282,7 +287,7 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
     mis_b = _box_blur(mis, radius)
     eligible = np.zeros(shape, dtype=bool)
     # rate 0's forms after the path tracer alone (form 1): (traces, excess
-    # variance, cost added, eligible) of forms 2, 3
+    # variance, cost added, eligible) of forms 2, 3, ... (one per TRACE_KS)
     traced: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
     if handoff:
         alt_mse = _alt_mse(acc, n, mean)
@@ -300,12 +305,12 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
         # squares, relMSE 0.83-0.91 against sms_star's 0.04-0.08)
         negl = _negligible_chain_light(m2_raw, var_t, radius, negligible)
         eligible = has & ((_box_blur(finite(acc.alt_hits), radius, total=True) >= min_hits) | negl)
-        if trace_k > 0 and float(np.sum(finite(acc.trace_rays))) > 0.0:
+        if trace and float(np.sum(finite(acc.trace_rays))) > 0.0:
             # the guided trace's forms of rate 0 (the traces' rays per sample added)
             # (recorded in one sample of four, whose hits must reach min_hits.
             # Their rare large values -- g small where the lobes miss part of a
             # small light's image -- are what a short record misses: pool's
-            # traced pixels rendered 14x the chains' variance where the record
+            # traced pixels rendered 15x the chains' variance where the record
             # had seen the traces 3x better; requiring the path tracer's own
             # min_hits as well left no traced pixel on double_slabs either.
             # Hence learn_trace is off by default: design-notes.)
@@ -315,7 +320,7 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
             ray1 = (finite(acc.trace_rays) + LOBE_COST * finite(acc.trace_lobes)) / (n_t * TRACES_RECORDED)
             pt_w = LOBE_COST * finite(acc.trace_pt_lobes) / n_t
             for k in TRACE_KS:
-                mse_k = _alt_mse(acc, finite(acc.trace_n), mean, f"trace{k}") + \
+                mse_k = _alt_mse(acc, finite(acc.trace_n), mean, f"trace{k}", n_all=n) + \
                     (1.0 / k - 1.0 / TRACES_RECORDED) * finite(getattr(acc, f"trace{k}_var")) / n_t
                 dvt = _box_blur(wgt * np.maximum(mse_k, 0.0) - wgt * var_t + (1.0 / q_t - 1.0) * m2,
                                 radius, nonneg=False)
@@ -326,7 +331,8 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
 
     def means(q, pt):
         """mean(wV) and mean(C) of a map (blurred M, c1, dv: what the choices
-        see); pt per pixel: 0 rate q, 1 the path tracer alone, 2 with the trace."""
+        see); pt per pixel: 0 rate q, 1 the path tracer alone, 2, 3, ... the
+        path tracer with TRACE_KS[pt - 2] traces."""
         conds = [pt == f + 1 for f in range(len(forms_dv))]
         v = v1_mean + float(np.mean(np.select(conds, forms_dv, (1.0 / q - 1.0) * m2_b)))
         c = float(np.mean(c0 + np.select(conds, forms_dc, q * c1_b)))

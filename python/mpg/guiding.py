@@ -224,6 +224,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # 0 (chain_rates.learn_rates_traced); off: the trace runs in every rate-0
     # pixel whose chain light is not negligible (chain_rates.guided_trace_map)
     learn_trace = _as_bool("learn_trace", params.pop("learn_trace", LEARN_TRACE))
+    if learn_trace and not auto:
+        warnings.append("learn_trace needs learned rates (chain_rate=auto); ignored")
+        learn_trace = False
     params["step_halvings"] = -1 if auto_halvings else int(halvings)
     init = str(params.pop("init", "surface"))
     n_photons = int(params.pop("photons", 200_000))
@@ -413,7 +416,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     if costs is not None:
         qmap, tmap, rate_info = learn_rates_traced(costs, q_min=q_min, objective=objective, handoff=handoff,
                                                    negligible=negligible,
-                                                   trace_k=params["handoff_guided"] if learn_trace else 0)
+                                                   trace=learn_trace and params["handoff_guided"] > 0)
+        if learn_trace and costs is not None:
+            rate_info["trace_records"] = float(np.sum(costs.trace_n))   # samples that recorded the traces
         if not rate_info.get("chain_rate_learned"):
             # too little training (< 2 spp): the training rate throughout
             qmap, tmap, rate_info = None, None, {}

@@ -271,9 +271,10 @@ def render(
     pixel_split_map: per-pixel sample splits (crop height x width, integers
       1..64), mpg's learned ones: each sample of a pixel is the mean of k
       camera samples.
-    guided_trace_map: per-pixel 0 or 1 (crop height x width), mpg's learned
-      one: where the integrator's handoff_guided trace runs in pixels of rate 0
-      (None: wherever handoff_guided is on).
+    guided_trace_map: per-pixel counts of guided traces in pixels of rate 0
+      (crop height x width, integers 0..64; 0: none), mpg's learned one; the
+      integrator's handoff_guided > 0 still switches the trace on (None: its
+      handoff_guided traces in every rate-0 pixel).
     sampler: 'independent' or 'stratified' pixel positions; None: the scene's
       <sampler> (independent, or stratified for stratified/multijitter/
       ldsampler/orthogonal/low_discrepancy). Stratified positions are points of
