@@ -325,8 +325,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         if auto:
             cam = scene.desc.camera
             costs = CostAccumulator((int(cam.crop[3]), int(cam.crop[2])))
-        # (a training pass's guided_trace_map switches its trace records: Stats::record_trace)
-        no_trace = np.zeros((int(scene.desc.camera.crop[3]), int(scene.desc.camera.crop[2])), dtype=np.float32)
+        # (a training pass's guided_trace_map of zeros switches its trace records
+        # off, Stats::record_trace; only passes that record costs make them)
+        no_trace = None if learn_trace or costs is None else np.zeros(costs.chain_m2.shape, dtype=np.float32)
         while True:
             used_t = _time.monotonic() - t0
             if budget_spp is not None and (spp_train + k > budget_spp or spp_train >= budget_spp / 2):
@@ -346,7 +347,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                                                             count_limits=auto_halvings,
                                                             guide_fraction=train_alpha))
             job = _core.RenderJob(core, integ, k, seed, 1_000_000 + iterations, threads or 0,
-                                  record_costs=auto, guided_trace_map=None if learn_trace else no_trace)
+                                  record_costs=auto, guided_trace_map=no_trace)
             while not job.wait(0.05):
                 if budget_t is not None and _time.monotonic() - t0 > budget_t:
                     job.cancel()
@@ -417,7 +418,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         qmap, tmap, rate_info = learn_rates_traced(costs, q_min=q_min, objective=objective, handoff=handoff,
                                                    negligible=negligible,
                                                    trace=learn_trace and params["handoff_guided"] > 0)
-        if learn_trace and costs is not None:
+        if learn_trace:
             rate_info["trace_records"] = float(np.sum(costs.trace_n))   # samples that recorded the traces
         if not rate_info.get("chain_rate_learned"):
             # too little training (< 2 spp): the training rate throughout
