@@ -13,7 +13,12 @@ rates choose the guided trace"; docs/results.md, fifteenth session).
     python bench/trace_diagnostics.py predict pool --res 32 --spp 512
         a guide from 32 spp, then a training pass's predicted per-sample
         variance of rate 0 with k = 1, 2, 4, 8 traces (chain_rates'
-        formula) against renders at rate 0 with k traces.
+        formula, and with trace_tails) against renders at rate 0 with k traces.
+    python bench/trace_diagnostics.py tails pool --res 32 --spp 512
+        a guide from 32 spp, then one training pass (rate 0.25, records on):
+        the rate-0 forms' second moments of the chain paths as the chains
+        sample them (trace<k>_tail) against the records' own (trace<k>_seen),
+        summed over the image and over the pixels where each is larger.
     python bench/trace_diagnostics.py lobes pool
         ns per lobe of ChainDistribution::pdf_dir over the largest leaves,
         against ns per ray of `path` (one thread): chain_rates.LOBE_COST.
@@ -151,8 +156,36 @@ def predict(args) -> dict:
         pred = (y2 - 2 * ys * mean + mean * mean).mean(axis=2) + (1 / k - 1 / 2) * r[f"trace{k}_var"] / nt
         img = mpg.render(sc, {"type": "mpg", "guide": g, "chain_rate": 1.0, "handoff_guided": k}, spp=n, seed=29,
                          progress=False, chain_rate_map=zero, guided_trace_map=np.full((R, R), k, np.float32))
-        out[str(k)] = {"predicted": float(pred.sum()), "measured": float(img.variance.mean(axis=2).sum() * n)}
+        tails = pred + (r[f"trace{k}_tail"] - r[f"trace{k}_seen"]) / np.maximum(nt, 1.0)
+        out[str(k)] = {"predicted": float(pred.sum()), "predicted_tails": float(tails.sum()),
+                       "measured": float(img.variance.mean(axis=2).sum() * n)}
         print(k, out[str(k)], flush=True)
+    return out
+
+
+def tails(args) -> dict:
+    import mpg
+    from mpg import _core
+    sc = mpg.load_file(ROOT / "scenes" / "eval" / f"{args.scene}.xml", res=str(args.res))
+    g = _guide(sc, 32)
+    core = sc.core
+    job = _core.RenderJob(core, _core.make_integrator(core, "mpg", {"guide": g, "chain_rate": 0.25, "handoff_guided": 4}),
+                          args.spp, 19, 0, 0, record_costs=True)
+    while not job.wait(0.05):
+        pass
+    r = job.result()
+    nt = np.maximum(r["trace_n"], 1.0)
+    ic = r["trace_chain_sum"] / nt[..., None]
+    out = {"trace_n": float(r["trace_n"].sum()), "chain_mean_sq": float((ic * ic).mean(axis=2).sum())}
+    print("chain paths' mean squared, summed:", out["chain_mean_sq"])
+    for name in ["0"] + [str(k) for k in (1, 2, 4, 8)]:
+        key = "trace_tail0" if name == "0" else f"trace{name}_tail"
+        t, sn = r[key] / nt, r[key.replace("tail", "seen")] / nt
+        out[name] = {"tail": float(t.sum()), "seen": float(sn.sum()),
+                     "tail_where_larger": float(np.where(t > sn, t - sn, 0).sum()),
+                     "seen_where_larger": float(np.where(sn > t, sn - t, 0).sum()),
+                     "pixels_tail_over_2x": int(np.sum(t > 2 * sn + 1e-12))}
+        print(name, out[name], flush=True)
     return out
 
 
@@ -180,7 +213,7 @@ def lobes(args) -> dict:
 def main() -> int:
     sys.path.insert(0, str(ROOT / "bench"))
     ap = argparse.ArgumentParser()
-    ap.add_argument("mode", choices=["everywhere", "classes", "predict", "lobes"])
+    ap.add_argument("mode", choices=["everywhere", "classes", "predict", "tails", "lobes"])
     ap.add_argument("scene")
     ap.add_argument("--time", type=float, default=20.0)
     ap.add_argument("--seeds", type=int, default=2)
@@ -188,7 +221,7 @@ def main() -> int:
     ap.add_argument("--res", type=int, default=32)
     ap.add_argument("--spp", type=int, default=512)
     args = ap.parse_args()
-    out = {"everywhere": everywhere, "classes": classes, "predict": predict, "lobes": lobes}[args.mode](args)
+    out = {"everywhere": everywhere, "classes": classes, "predict": predict, "tails": tails, "lobes": lobes}[args.mode](args)
     path = ROOT / "bench" / "results" / f"trace_diagnostics-{args.mode}-{args.scene}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({"command": " ".join(["python", "bench/trace_diagnostics.py"] + sys.argv[1:]),

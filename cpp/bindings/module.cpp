@@ -165,6 +165,13 @@ py::dict pass_to_dict(PassResult& r) {
       put((k + "_sum_sq").c_str(), r.trace_sum_sq[f], rgb);
       put((k + "_var").c_str(), r.trace_var[f], grey);
     }
+    put("trace_tail0", r.trace_tail[0], grey);
+    put("trace_seen0", r.trace_seen[0], grey);
+    for (int f = 0; f < Stats::kTraceKs; ++f) {
+      put(("trace" + std::to_string(1 << f) + "_tail").c_str(), r.trace_tail[f + 1], grey);
+      put(("trace" + std::to_string(1 << f) + "_seen").c_str(), r.trace_seen[f + 1], grey);
+    }
+    put("trace_chain_sum", r.trace_chain_sum, rgb);
     put("trace_hits", r.trace_hits, grey);
     put("trace_n", r.trace_n, grey);
     put("trace_lobes", r.trace_lobes, grey);

@@ -26,6 +26,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   uint32_t seps = 0;
   bool sep_first = false;
   Vec3 sep_wo(0.f);   // the separator's BSDF sample direction (omega_D of a chain after it)
+  double rr_sep = 1.0;  // the roulette's survival probabilities since it (Stats::sample_tail)
   // every BSDF sample so far delta (PathParams::camera_delta)
   bool delta_prefix = true;
   const bool cd_only = mode == PathParams::CameraDelta::Only;
@@ -43,15 +44,43 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   const int trace_k = !chains_ ? 0 : (st.pixel_trace_k < 0 ? chains_->handoff_guided() : st.pixel_trace_k);
   // ... a chain path after the first separator: the traces' weight replaces
   // the path tracer alone's 1
-  auto trace_alt_hit = [&](const SurfaceInteraction& hit, const Color& c) {
-    if (!trace_alt || !chain_ok || tau.empty() || !sep_first || is_black(c)) return;
+  // ... and the forms' second moments of the chain paths (Stats::sample_tail):
+  // a chain-path value Y as it enters the sample, times the path's
+  // contribution to its form's second moment per unit of its integrand F.
+  // With the path tracer's density b, its roulette's survival p after the
+  // separator and k traces' density k g (none at k = 0, or where no trace
+  // can produce the path), by the balance heuristic b / (b + k g) the path
+  // tracer's value is F / (p (b + k g)) with density b p and a trace's
+  // F / (b + k g) with k g: together F (b / p + k g) / (b + k g)^2 = num
+  // (b / p + k g) / (b + k g)^2, num = F.
+  auto tail_add = [&](const Color& Y, const Color& num, double b, double g, double p) {
+    if (!trace_alt || is_black(Y) || !(p > 0.0)) return;
+    const double y = (double(Y.x) * num.x + double(Y.y) * num.y + double(Y.z) * num.z) / 3.0;
+    for (int f = 0; f <= Stats::kTraceKs; ++f) {
+      const double kg = f == 0 ? 0.0 : double(1 << (f - 1)) * std::max(g, 0.0);
+      const double den = b + kg;
+      if (den > 0.0) st.sample_tail[f] += y * (b / p + kg) / (den * den);
+    }
+    st.sample_chain_part += Y;
+  };
+  // ... a chain path after a separator, found by the path tracer, whose
+  // value in the sample is c w_in: after the first separator, the traces'
+  // weight replaces the path tracer alone's 1
+  auto trace_alt_hit = [&](const SurfaceInteraction& hit, const Color& c, float w_in) {
+    if (!trace_alt || !chain_ok || tau.empty() || is_black(c)) return;
     double b = 0.0, g = 0.0;
-    const bool shared = chains_->guided_trace_densities(sep_si, sep_ctx, sep_depth, max_depth, sep_wo,
-                                                        chain_si.data(), tau, hit, st, b, g);
-    // (k = 2^i traces: Stats::kTraceKs)
-    for (int i = 0; i < Stats::kTraceKs; ++i)
-      st.sample_trace_hits_delta[i] += c * (ChainEstimator::guided_trace_pt_weight(shared, b, g, 1 << i) - 1.f);
-    st.sample_trace_hit = true;
+    bool shared = false;
+    if (sep_first) {
+      shared = chains_->guided_trace_densities(sep_si, sep_ctx, sep_depth, max_depth, sep_wo,
+                                               chain_si.data(), tau, hit, st, b, g);
+      // (k = 2^i traces: Stats::kTraceKs)
+      for (int i = 0; i < Stats::kTraceKs; ++i)
+        st.sample_trace_hits_delta[i] += c * (ChainEstimator::guided_trace_pt_weight(shared, b, g, 1 << i) - 1.f);
+      st.sample_trace_hit = true;
+    }
+    st.sample_alt_chain += c;
+    // (the path tracer alone's value is c = num / (b p): with b = 1, num = c p)
+    tail_add(c * w_in, c * float(rr_sep), 1.0, shared && b > 0.0 ? g / b : 0.0, rr_sep);
   };
 
   // Light found by BSDF sampling: on a delta prefix (All) it is also the
@@ -94,7 +123,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
                                              rng, st, beta * Le, &leaf);
           st.sample_alt_delta += beta * Le * (1.f - w);  // the path tracer alone keeps it whole
           st.sample_owned_hit = true;  // (w can round to 1 where the path tracer's density dominates)
-          trace_alt_hit(si, beta * Le);
+          trace_alt_hit(si, beta * Le, w);
           if (w > 0.f) {
             L += beta * Le * w;
             st.owned_shared++;
@@ -116,7 +145,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         const float w = prev_delta ? 1.f : power_heuristic(prev_pdf, scene.pdf_emitter_hit(prev_p, si));
         add(beta * Le * w);
         // (a chain path here has w = 1: its last vertex is a chain vertex)
-        if (prev_delta) trace_alt_hit(si, beta * Le);
+        if (prev_delta) trace_alt_hit(si, beta * Le, w);
       }
     }
     if (!may_scatter(depth, st)) break;
@@ -163,8 +192,12 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         if (seps == 0 && trace_k > 0 && chains_->guided_trace_on())
           L += beta * chains_->guided_trace(si, ctx, depth, max_depth, trace_k, rng, st);
       } else if (q >= 1.f || rng.next_float() < q) {
-        const Color X = beta * chains_->estimate(si, ctx, depth, max_depth, rng, st, beta);
+        ChainEstimator::PathDensities dens;
+        dens.want_g = seps == 0;
+        const Color X = beta * chains_->estimate(si, ctx, depth, max_depth, rng, st, beta, trace_alt ? &dens : nullptr);
         L += X * (1.f / q);
+        if (dens.ok)
+          tail_add(X * (1.f / q), beta * dens.unit, dens.b, dens.g, chain_survival(beta, eta, depth, dens));
         st.sample_alt_delta -= X * (1.f / q);
         // (a non-finite X rejects the whole sample, render.cpp: not counted here)
         const double m2 = (double(X.x) * X.x + double(X.y) * X.y + double(X.z) * X.z) / (3.0 * double(q));
@@ -201,6 +234,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         sep_depth = depth;
         sep_first = seps == 0;
         sep_wo = wo;
+        rr_sep = 1.0;
         sep_si = si;
         sep_ctx = ctx;
         tau.clear();
@@ -225,7 +259,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
 
     ++depth;
 
-    if (!survives_roulette(beta, eta, depth, rng)) break;
+    if (!survives_roulette(beta, eta, depth, rng, &rr_sep)) break;
     const Vec3 org = offset_ray_origin(si.p, si.ng, wo);
     d = wo;
     st.rays++;

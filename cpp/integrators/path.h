@@ -77,8 +77,9 @@ class PathIntegrator : public Integrator {
   }
   // Russian roulette (Mitsuba 3's rule) at the path's new depth, decided
   // before the ray is traced (a path it ends costs no intersection); draws one
-  // variate unless beta is black. false: the path ends.
-  bool survives_roulette(Color& beta, float eta, uint32_t depth, PCG32& rng) const {
+  // variate unless beta is black. false: the path ends. p_rr: multiplied by
+  // the survival probability where the roulette ran.
+  bool survives_roulette(Color& beta, float eta, uint32_t depth, PCG32& rng, double* p_rr = nullptr) const {
     const float bmax = max_comp(beta);
     if (!(bmax > 0.f)) return false;
     const float q = std::min(bmax * eta * eta, 0.95f);
@@ -86,8 +87,30 @@ class PathIntegrator : public Integrator {
     if (int(depth) >= p_.rr_depth) {
       if (u_rr >= q) return false;
       beta /= q;
+      if (p_rr) *p_rr *= double(q);
     }
     return true;
+  }
+  // The probability that this roulette lets a path through the chain of
+  // `d` (ChainEstimator::PathDensities) from a separator at `depth` with
+  // throughput beta and eta there: the roulettes after the separator's
+  // scattering and after each chain vertex's, as trace() runs them.
+  double chain_survival(Color beta, float eta, uint32_t depth, const ChainEstimator::PathDensities& d) const {
+    double p = 1.0;
+    for (int i = 0; i <= d.n; ++i) {
+      if (i == 0) beta *= d.sep_weight;
+      else {
+        beta *= d.w[size_t(i - 1)];
+        eta *= d.eta[size_t(i - 1)];
+      }
+      ++depth;
+      if (int(depth) < p_.rr_depth) continue;
+      const float q = std::min(max_comp(beta) * eta * eta, 0.95f);
+      if (!(q > 0.f)) return 0.0;
+      beta /= q;
+      p *= double(q);
+    }
+    return p;
   }
   // trace in Only mode from the hit si of direction d, with branching at the
   // next `levels` two-lobe delta vertices (PathParams::delta_branch).

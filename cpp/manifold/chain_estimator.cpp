@@ -803,7 +803,8 @@ float ChainEstimator::guided_trace_pt_weight(bool shared, double b, double g, in
 }
 
 Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
-                               uint32_t max_depth, PCG32& rng, Stats& st, const Color& beta) const {
+                               uint32_t max_depth, PCG32& rng, Stats& st, const Color& beta,
+                               PathDensities* dens) const {
   if (!active_) return Color(0.f);
   const int nmax = max_len(depth, max_depth);
   if (nmax < 1) return Color(0.f);
@@ -927,6 +928,36 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     }
     result = f * kap * Le * float(scale);
     st.chain_contributions++;
+    if (dens && !lp.point) {
+      // (pt_density's factors without G: both densities per solid angle at x_D)
+      const double letters = pt_letters_pdf(chain, tau_star);
+      dens->unit = f * kap * Le;
+      const float pdf = scene_.bsdfs.pdf(ctx, si.wi, wD);
+      dens->b = letters > 0.0 ? double(pdf) * letters : 0.0;
+      dens->g = 0.0;
+      dens->n = n;
+      dens->sep_weight = pdf > 0.f ? f / pdf : Color(0.f);
+      for (int i = 0; i < n && i < ChainDistribution::kMaxN; ++i) {
+        // the path tracer's draw of the letter (pt_letters_pdf's rule): its weight and eta
+        const SurfaceInteraction vi = vertex_interaction(chain, size_t(i));
+        const BSDFContext vc = scene_.bsdfs.resolve(scene_.shapes[size_t(chain.v[size_t(i)].shape)].bsdf, vi);
+        Vec3 wo;
+        const BSDFSample bs = vc.leaf ? scene_.bsdfs.sample(vc, vi.wi, tau_star[size_t(i)] == 'R' ? 0.f : 1.f,
+                                                            Vec2(0.5f), wo)
+                                      : BSDFSample{};
+        dens->w[size_t(i)] = bs.pdf > 0.f ? bs.weight : Color(1.f);
+        dens->eta[size_t(i)] = bs.pdf > 0.f ? bs.eta : 1.f;
+      }
+      bool passes = dens->want_g;   // the guided trace passes delta vertices only
+      for (const ManifoldVertex& v : chain.v) passes = passes && !v.mf;
+      const int li = light_index_[size_t(lp.emitter)];
+      if (passes && li >= 0) {
+        const size_t k = size_t(li);
+        if (const ChainDistribution* leaf = guide_at(si.p, light_centre_[k], &st))
+          dens->g = leaf_trace_pdf(*leaf, k, n, tau_bits(tau_star.data(), n), wD, nullptr);
+      }
+      dens->ok = std::isfinite(dens->b) && std::isfinite(dens->g) && (dens->b > 0.0 || dens->g > 0.0);
+    }
     // The largest estimate as it enters the sample: after the roulette's 1/q
     // (path.cpp takes q the same way), where low rates make the fireflies.
     const double q = double(rate_at(st));

@@ -230,8 +230,30 @@ class ChainEstimator {
   // Contribution at x_D (already multiplied by f_s * |cos|); `wi` toward the camera.
   // `beta`: the path's throughput the caller multiplies the estimate by (count_limits
   // tallies the sample's part, beta x estimate).
+  // `dens` (training's trace records, Stats::sample_tail): where the estimate
+  // found a chain path to an area light, the path's densities as the rate-0
+  // forms see it: unit = f_s |cos| kappa Le (the path's value per solid angle
+  // at x_D, throughput not included), b = the path tracer's solid-angle
+  // density of it (pdf_bsdf(omega_D) times its letters' probabilities; 0 where
+  // it does not share it), g = one guided trace's (want_g: the first
+  // separator; 0 otherwise or where the trace cannot pass a vertex). The value
+  // of the path with the path tracer and k traces is then unit / (b + k g).
+  // For the path tracer's roulette along the path (PathIntegrator::
+  // chain_survival): its BSDF sample's weight at x_D (f_s |cos| / pdf), and
+  // at each of the n chain vertices its weight and eta as it draws the letter.
+  struct PathDensities {
+    bool want_g = false;
+    bool ok = false;
+    Color unit{0.f};
+    double b = 0.0, g = 0.0;
+    int n = 0;
+    Color sep_weight{0.f};
+    std::array<Color, ChainDistribution::kMaxN> w{};
+    std::array<float, ChainDistribution::kMaxN> eta{};
+  };
   Color estimate(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
-                 uint32_t max_depth, PCG32& rng, Stats& st, const Color& beta = Color(1.f)) const;
+                 uint32_t max_depth, PCG32& rng, Stats& st, const Color& beta = Color(1.f),
+                 PathDensities* dens = nullptr) const;
 
  private:
   struct LightPoint {

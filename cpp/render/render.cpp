@@ -61,6 +61,9 @@ void RenderJob::run() {
       result_.trace_sum_sq[f].assign(size_t(W) * H * 3, 0.0);
       result_.trace_var[f].assign(size_t(W) * H, 0.0);
     }
+    for (auto& t : result_.trace_tail) t.assign(size_t(W) * H, 0.0);
+    for (auto& t : result_.trace_seen) t.assign(size_t(W) * H, 0.0);
+    result_.trace_chain_sum.assign(size_t(W) * H * 3, 0.0);
     result_.trace_hits.assign(size_t(W) * H, 0.0);
     result_.trace_n.assign(size_t(W) * H, 0.0);
     result_.trace_rays.assign(size_t(W) * H, 0.0);
@@ -123,6 +126,7 @@ void RenderJob::run() {
           double ds[3] = {0, 0, 0}, ds2[3] = {0, 0, 0};
           double ts[Stats::kTraceKs][3] = {}, ts2[Stats::kTraceKs][3] = {}, tvar[Stats::kTraceKs] = {}, thits = 0;
           double tn = 0;   // samples that recorded the traces
+          double ttail[Stats::kTraceKs + 1] = {}, tseen[Stats::kTraceKs + 1] = {}, tchain[3] = {};
           st.pixel_chain_rate = qmap ? (*qmap)[size_t(y) * W + x] : -1.f;
           st.pixel_trace_k = gmap ? int((*gmap)[size_t(y) * W + x]) : -1;
           st.pixel_chain_m2 = 0.0;
@@ -159,6 +163,9 @@ void RenderJob::run() {
               for (TraceSample& t : st.sample_traces) t = TraceSample{};
               st.sample_trace_hit = false;
               st.sample_trace_recorded = false;
+              for (double& t : st.sample_tail) t = 0.0;
+              st.sample_chain_part = Color(0.f);
+              st.sample_alt_chain = Color(0.f);
               st.sample_delta_L = Color(0.f);
               Color Ls = integrator_->Li(scene, o, d, tmin, tmax, rng, st);
               if (ksplit > 1) {
@@ -223,6 +230,29 @@ void RenderJob::run() {
               static_assert(Stats::kTraceRecorded == 2, "the values below are formed from two traces");
               const bool rec = st.record_trace && st.sample_trace_recorded;
               if (rec) tn += 1.0;
+              if (rec && ok) {
+                const Color& Cp = st.sample_chain_part;
+                bool fin = std::isfinite(Cp.x) && std::isfinite(Cp.y) && std::isfinite(Cp.z);
+                for (double t : st.sample_tail) fin = fin && std::isfinite(t);
+                const Color& P0 = st.sample_alt_chain;
+                fin = fin && std::isfinite(P0.x) && std::isfinite(P0.y) && std::isfinite(P0.z);
+                if (fin) {
+                  for (int f = 0; f <= Stats::kTraceKs; ++f) ttail[f] += st.sample_tail[f];
+                  for (int c = 0; c < 3; ++c) tchain[c] += Cp[c];
+                  // the records' own: P^2 + (Z_1^2 + Z_2^2) / (2 k), mean over RGB
+                  auto msq = [](const Color& c) {
+                    return (double(c.x) * c.x + double(c.y) * c.y + double(c.z) * c.z) / 3.0;
+                  };
+                  tseen[0] += msq(P0);
+                  for (int f = 0; f < Stats::kTraceKs; ++f) {
+                    const int kk = 1 << f;
+                    const double v = msq(P0 + st.sample_trace_hits_delta[f]) +
+                                     (msq(st.sample_traces[0].weighted(kk) * float(kk)) +
+                                      msq(st.sample_traces[1].weighted(kk) * float(kk))) / (2.0 * kk);
+                    if (std::isfinite(v)) tseen[f + 1] += v;
+                  }
+                }
+              }
               if (rec && ok && (st.sample_owned_hit || st.sample_trace_hit)) thits += 1.0;
               for (int f = 0; f < Stats::kTraceKs && rec; ++f) {
                 const int kk = 1 << f;
@@ -260,6 +290,11 @@ void RenderJob::run() {
             result_.trace_lobes[j] = double(st.trace_lobes - lobes0);
             result_.trace_pt_lobes[j] = double(st.trace_pt_lobes - pt_lobes0);
             for (int f = 0; f < Stats::kTraceKs; ++f) result_.trace_var[f][j] = tvar[f];
+            for (int f = 0; f <= Stats::kTraceKs; ++f) {
+              result_.trace_tail[f][j] = ttail[f];
+              result_.trace_seen[f][j] = tseen[f];
+            }
+            for (int c = 0; c < 3; ++c) result_.trace_chain_sum[i + c] = tchain[c];
             result_.alt_hits[j] = hits;
             result_.delta_rays[j] = double(st.delta_prefix_rays - delta0);
             for (int c = 0; c < 3; ++c) {

@@ -45,6 +45,14 @@ struct PassResult {
   // against them visited (Stats::trace_lobes)
   std::vector<double> trace_sum[Stats::kTraceKs], trace_sum_sq[Stats::kTraceKs], trace_var[Stats::kTraceKs];
   std::vector<double> trace_n, trace_hits, trace_rays, trace_lobes, trace_pt_lobes;
+  // ... trace_tail[i] (height x width, i = 0: the path tracer alone, i + 1:
+  // 2^i traces) and trace_chain_sum (height x width x 3): the same samples'
+  // sums of Stats::sample_tail and sample_chain_part
+  // trace_seen[i]: the records' own estimate of the same second moments,
+  // P^2 + (Z_1^2 + Z_2^2) / (2 k), P the path tracer's chain paths as
+  // weighted for k traces (unbiased as well where a sample has at most one
+  // chain path; the tails' rare paths as often as the records see them)
+  std::vector<double> trace_tail[Stats::kTraceKs + 1], trace_seen[Stats::kTraceKs + 1], trace_chain_sum;
   std::vector<double> delta_sum, delta_sum_sq;
   Stats stats;
   double seconds = 0.0;

@@ -87,6 +87,23 @@ struct Stats {
   // one dot product each: a leaf of 3 000 lobes costs ~20 rays), and those of
   // the path tracer's weights against them (trace_pt_lobes); counted always
   uint64_t trace_lobes = 0, trace_pt_lobes = 0;
+  // ... and, in the same recorded samples, the rate-0 forms' second moments of
+  // the chain paths as the chains sample them (design-notes "The traces'
+  // tails"): sum over the sample's chain-path values Y (chain estimates as
+  // they enter the sample, X / q, and the path tracer's shares of shared
+  // chain paths) of Y times the value V_k the same path has under form k,
+  // V_k = F / (b + k g) (index 0: the path tracer alone, V = F / b; index
+  // f + 1: k = 2^f traces; mean over RGB). E[sum Y V_k] = the integral of
+  // F^2 / (b + k g) over the chain paths, whichever technique found them, so
+  // the rare paths the path tracer and the traces seldom reach (their tails)
+  // count at the chains' rate. sample_chain_part: the sum of the Y.
+  // The same moments as the records see them, for comparison (render.cpp's
+  // trace_seen): sample_alt_chain, the sample's chain paths the path tracer
+  // found (in the path tracer alone's value A), whose square and the traces'
+  // give each form's sum of squared path values.
+  double sample_tail[kTraceKs + 1] = {};
+  Color sample_chain_part{0.f};
+  Color sample_alt_chain{0.f};
   // Per camera sample: the part of its value from the light seen through delta
   // scattering only (PathParams::CameraDelta), recorded in every sample. With
   // split_delta (set per pixel by the render worker when its delta-split count

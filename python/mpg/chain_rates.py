@@ -96,8 +96,9 @@ class CostAccumulator:
     # the arrays a record_costs pass returns under these names, summed as they are
     PASS_SUMS = ("sum", "sum_sq", "chain_m2", "chain_steps", "walk_steps", "rays", "alt_sum",
                  "alt_sum_sq", "alt_hits", "delta_rays", "delta_sum", "delta_sum_sq",
-                 "trace_n", "trace_hits", "trace_rays", "trace_lobes", "trace_pt_lobes") + tuple(
-                     f"trace{k}_{x}" for k in TRACE_KS for x in ("sum", "sum_sq", "var"))
+                 "trace_n", "trace_hits", "trace_rays", "trace_lobes", "trace_pt_lobes",
+                 "trace_tail0", "trace_seen0", "trace_chain_sum") + tuple(
+                     f"trace{k}_{x}" for k in TRACE_KS for x in ("sum", "sum_sq", "var", "tail", "seen"))
 
     def __init__(self, shape: tuple[int, int]):
         self.n = 0
@@ -125,6 +126,13 @@ class CostAccumulator:
             setattr(self, f"trace{k}_sum", np.zeros(shape + (3,)))
             setattr(self, f"trace{k}_sum_sq", np.zeros(shape + (3,)))
             setattr(self, f"trace{k}_var", np.zeros(shape))
+            # the chain paths' second moment under k traces, as the chains sample them
+            # (Stats::sample_tail; trace_tail0: the path tracer alone's)
+            setattr(self, f"trace{k}_tail", np.zeros(shape))
+            setattr(self, f"trace{k}_seen", np.zeros(shape))   # ... as the records see them
+        self.trace_tail0 = np.zeros(shape)
+        self.trace_seen0 = np.zeros(shape)
+        self.trace_chain_sum = np.zeros(shape + (3,))   # ... and the chain paths' values
         self.trace_n = np.zeros(shape)   # the samples that recorded them (one in four)
         self.trace_hits = np.zeros(shape)
         self.trace_rays = np.zeros(shape)
@@ -223,7 +231,7 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
                        iterations: int = 50, objective: str = "relmse",
                        handoff: bool = True, min_hits: float = HANDOFF_MIN_HITS,
                        negligible: float = HANDOFF_NEGLIGIBLE,
-                       trace: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
+                       trace: bool = False, tails: bool = True) -> tuple[np.ndarray, np.ndarray, dict]:
     """Per-pixel rates by Eq. (1) of the module docstring, the count of guided
     traces of handed-off pixels per pixel (0 or one of TRACE_KS; only rate-0
     pixels trace), and a summary.
@@ -255,7 +263,15 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
     worth of time when every sample recorded them), and the hits counted are
     theirs. A trace form's cost is k traces' rays and lobes (LOBE_COST) and
     the path tracer's weights' lobes. trace False: the path tracer alone
-    only."""
+    only.
+
+    tails: the trace forms' second moment of the chain paths is the chains'
+    (acc.trace<k>_tail: each chain path's value times its value under the
+    form, sampled by the chains and by the path tracer in their MIS shares)
+    in place of the records' own (acc.trace<k>_seen): the same expectation,
+    but the rare paths the path tracer and the traces seldom reach -- a small
+    light's image the lobes miss in part -- come at the chains' rate, where
+    the records' few samples per pixel miss them (pool)."""
     shape = acc.chain_m2.shape
     info: dict = {"chain_rate_min_allowed": q_min}
     if acc.n < 2:
@@ -322,6 +338,9 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
             for k in TRACE_KS:
                 mse_k = _alt_mse(acc, finite(acc.trace_n), mean, f"trace{k}", n_all=n) + \
                     (1.0 / k - 1.0 / TRACES_RECORDED) * finite(getattr(acc, f"trace{k}_var")) / n_t
+                if tails:
+                    mse_k = mse_k + (finite(getattr(acc, f"trace{k}_tail")) -
+                                     finite(getattr(acc, f"trace{k}_seen"))) / n_t
                 dvt = _box_blur(wgt * np.maximum(mse_k, 0.0) - wgt * var_t + (1.0 / q_t - 1.0) * m2,
                                 radius, nonneg=False)
                 traced.append((k, dvt, _box_blur(k * ray1 + pt_w, radius), el))
