@@ -674,10 +674,11 @@ def test_learn_trace_renders_end_to_end_and_is_deterministic(scenes_dir):
     """mpg with learn_trace: the training records the traces, the learned map
     holds 0 or one of TRACE_KS in rate-0 pixels, and the image is the same on
     1 and 2 threads (the traces are recorded per sample, from the sample's
-    own random stream). Off (the default), no trace is recorded."""
+    own random stream). It is the default; off, no trace is recorded, and
+    at a fixed rate it is off without a warning unless asked for."""
     from mpg.chain_rates import TRACE_KS
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
-    p = {"type": "mpg", "learn_trace": True}
+    p = {"type": "mpg"}
     a = mpg.render(sc, integrator=p, spp=32, seed=3, threads=1, progress=False)
     b = mpg.render(sc, integrator=p, spp=32, seed=3, threads=2, progress=False)
     assert np.array_equal(a.rgb, b.rgb)
@@ -685,5 +686,10 @@ def test_learn_trace_renders_end_to_end_and_is_deterministic(scenes_dir):
     assert st["chain_rate_learned"] and st["trace_records"] > 0
     if st.get("guided_trace_fraction", 0.0) > 0:
         assert min(TRACE_KS) <= st["guided_trace_mean_k"] <= max(TRACE_KS)
-    off = mpg.render(sc, integrator="mpg", spp=32, seed=3, progress=False)
-    assert off.stats.get("chain_rate_fraction_trace", 0.0) == 0.0
+    off = mpg.render(sc, integrator={"type": "mpg", "learn_trace": False}, spp=32, seed=3, progress=False)
+    assert off.stats.get("chain_rate_fraction_trace", 0.0) == 0.0 and "trace_records" not in off.stats
+    fixed = mpg.render(sc, integrator={"type": "mpg", "chain_rate": 0.5}, spp=8, seed=3, progress=False)
+    assert not any("learn_trace" in w for w in fixed.stats["warnings"])
+    asked = mpg.render(sc, integrator={"type": "mpg", "chain_rate": 0.5, "learn_trace": True}, spp=8, seed=3,
+                       progress=False)
+    assert any("learn_trace" in w for w in asked.stats["warnings"])

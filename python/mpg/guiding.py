@@ -59,10 +59,15 @@ KNOWN_TYPES = True
 # fourteenth session).
 HANDOFF_GUIDED = 4
 # The training measures the guided trace, and the rates choose where it runs
-# (learn_trace): off by default, the traces' rare large values escape the
-# training's record where the light is small (pool 8x worse; design-notes
-# "The rates choose the guided trace")
-LEARN_TRACE = False
+# (learn_trace; design-notes "The rates choose the guided trace") ...
+LEARN_TRACE = True
+# ... with the forms' second moments of the chain paths taken as the chains
+# sample them (trace_tails; chain_rates.learn_rates_traced; design-notes "The
+# traces' tails"): without it the traces' rare large values escaped the
+# training's record where the light is small (pool 8x worse), with it pool
+# is level and double_slabs, ring, sphere and slab gain 1.1-2.4x
+# (docs/results.md, sixteenth session)
+TRACE_TAILS = True
 # The pixel split's default (learned for MSE) and the cap on its predicted cost
 # per sample (design-notes "Splitting the pixels"; docs/results.md, eleventh session)
 PIXEL_SPLIT = "mse"
@@ -223,9 +228,12 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # between the path tracer alone and the path tracer with the trace at rate
     # 0 (chain_rates.learn_rates_traced); off: the trace runs in every rate-0
     # pixel whose chain light is not negligible (chain_rates.guided_trace_map)
+    asked_trace = "learn_trace" in params
     learn_trace = _as_bool("learn_trace", params.pop("learn_trace", LEARN_TRACE))
+    trace_tails = _as_bool("trace_tails", params.pop("trace_tails", TRACE_TAILS))
     if learn_trace and not auto:
-        warnings.append("learn_trace needs learned rates (chain_rate=auto); ignored")
+        if asked_trace:   # (the default's learn_trace simply has nothing to do at a fixed rate)
+            warnings.append("learn_trace needs learned rates (chain_rate=auto); ignored")
         learn_trace = False
     params["step_halvings"] = -1 if auto_halvings else int(halvings)
     init = str(params.pop("init", "surface"))
@@ -417,7 +425,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     if costs is not None:
         qmap, tmap, rate_info = learn_rates_traced(costs, q_min=q_min, objective=objective, handoff=handoff,
                                                    negligible=negligible,
-                                                   trace=learn_trace and params["handoff_guided"] > 0)
+                                                   trace=learn_trace and params["handoff_guided"] > 0,
+                                                   tails=trace_tails)
         if learn_trace:
             rate_info["trace_records"] = float(np.sum(costs.trace_n))   # samples that recorded the traces
         if not rate_info.get("chain_rate_learned"):
