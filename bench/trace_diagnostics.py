@@ -6,17 +6,19 @@ rates choose the guided trace"; docs/results.md, fifteenth session).
         first separator and no chain estimate at all (the learned rate map
         replaced by zeros, the trace map by k everywhere), interleaved per
         seed; prints the MSE less the reference's floor.
-    python bench/trace_diagnostics.py classes pool --time 20
-        mpg with learn_trace off and on (seed 0): per class of pixel (traced
+    python bench/trace_diagnostics.py classes pool --time 20 [--tails 0]
+        mpg with learn_trace off and on (seed 0; --tails 0: without
+        trace_tails, as the fifteenth session ran it): per class of pixel (traced
         with learn_trace, at a chain rate in both, ...) the summed squared
         error and variance of each render, and the largest pixel variances.
     python bench/trace_diagnostics.py predict pool --res 32 --spp 512
         a guide from 32 spp, then a training pass's predicted per-sample
         variance of rate 0 with k = 1, 2, 4, 8 traces (chain_rates'
         formula, and with trace_tails) against renders at rate 0 with k traces.
-    python bench/trace_diagnostics.py tails pool --res 32 --spp 512
-        a guide from 32 spp, then one training pass (rate 0.25, records on):
-        the rate-0 forms' second moments of the chain paths as the chains
+    python bench/trace_diagnostics.py tails pool --res 32 --spp 1024 --seeds 2 --rate 1
+        a guide from 32 spp, then training passes (rate --rate, records on,
+        pass seeds 19, 20, ...; --rr: the path tracer's rr_depth): the
+        rate-0 forms' second moments of the chain paths as the chains
         sample them (trace<k>_tail) against the records' own (trace<k>_seen),
         summed over the image and over the pixels where each is larger.
     python bench/trace_diagnostics.py lobes pool
@@ -110,7 +112,8 @@ def classes(args) -> dict:
     try:
         for on in (False, True):
             cap.clear()
-            img = mpg.render(sc, {"type": "mpg", "learn_trace": on}, time=args.time, seed=0, progress=False)
+            img = mpg.render(sc, {"type": "mpg", "learn_trace": on, "trace_tails": args.tails}, time=args.time,
+                             seed=0, progress=False)
             g = cap.get("g")
             res[on] = (((img.rgb.astype(float) - ref) ** 2).mean(axis=2), img.variance.mean(axis=2), cap["q"],
                        np.zeros_like(cap["q"]) if g is None else np.asarray(g), int(img.spp))
@@ -148,7 +151,7 @@ def predict(args) -> dict:
     while not job.wait(0.05):
         pass
     r = job.result()
-    nt, mean = r["trace_n"], r["sum"] / n
+    nt, mean = np.maximum(r["trace_n"], 1.0), r["sum"] / n
     zero = np.zeros((R, R), np.float32)
     out = {}
     for k in (1, 2, 4, 8):
@@ -156,7 +159,7 @@ def predict(args) -> dict:
         pred = (y2 - 2 * ys * mean + mean * mean).mean(axis=2) + (1 / k - 1 / 2) * r[f"trace{k}_var"] / nt
         img = mpg.render(sc, {"type": "mpg", "guide": g, "chain_rate": 1.0, "handoff_guided": k}, spp=n, seed=29,
                          progress=False, chain_rate_map=zero, guided_trace_map=np.full((R, R), k, np.float32))
-        tails = pred + (r[f"trace{k}_tail"] - r[f"trace{k}_seen"]) / np.maximum(nt, 1.0)
+        tails = pred + (r[f"trace{k}_tail"] - r[f"trace{k}_seen"]) / nt
         out[str(k)] = {"predicted": float(pred.sum()), "predicted_tails": float(tails.sum()),
                        "measured": float(img.variance.mean(axis=2).sum() * n)}
         print(k, out[str(k)], flush=True)
@@ -169,23 +172,27 @@ def tails(args) -> dict:
     sc = mpg.load_file(ROOT / "scenes" / "eval" / f"{args.scene}.xml", res=str(args.res))
     g = _guide(sc, 32)
     core = sc.core
-    job = _core.RenderJob(core, _core.make_integrator(core, "mpg", {"guide": g, "chain_rate": 0.25, "handoff_guided": 4}),
-                          args.spp, 19, 0, 0, record_costs=True)
-    while not job.wait(0.05):
-        pass
-    r = job.result()
-    nt = np.maximum(r["trace_n"], 1.0)
-    ic = r["trace_chain_sum"] / nt[..., None]
-    out = {"trace_n": float(r["trace_n"].sum()), "chain_mean_sq": float((ic * ic).mean(axis=2).sum())}
-    print("chain paths' mean squared, summed:", out["chain_mean_sq"])
-    for name in ["0"] + [str(k) for k in (1, 2, 4, 8)]:
-        key = "trace_tail0" if name == "0" else f"trace{name}_tail"
-        t, sn = r[key] / nt, r[key.replace("tail", "seen")] / nt
-        out[name] = {"tail": float(t.sum()), "seen": float(sn.sum()),
-                     "tail_where_larger": float(np.where(t > sn, t - sn, 0).sum()),
-                     "seen_where_larger": float(np.where(sn > t, sn - t, 0).sum()),
-                     "pixels_tail_over_2x": int(np.sum(t > 2 * sn + 1e-12))}
-        print(name, out[name], flush=True)
+    params = {"guide": g, "chain_rate": args.rate, "handoff_guided": 4}
+    if args.rr is not None:
+        params["rr_depth"] = args.rr
+    out = {}
+    for seed in range(19, 19 + args.seeds):
+        job = _core.RenderJob(core, _core.make_integrator(core, "mpg", params), args.spp, seed, 0, 0, record_costs=True)
+        while not job.wait(0.05):
+            pass
+        r = job.result()
+        nt = np.maximum(r["trace_n"], 1.0)
+        ic = r["trace_chain_sum"] / nt[..., None]
+        o = out[str(seed)] = {"trace_n": float(r["trace_n"].sum()), "chain_mean_sq": float((ic * ic).mean(axis=2).sum())}
+        for name in ["0"] + [str(k) for k in (1, 2, 4, 8)]:
+            key = "trace_tail0" if name == "0" else f"trace{name}_tail"
+            t, sn = r[key] / nt, r[key.replace("tail", "seen")] / nt
+            o[name] = {"tail": float(t.sum()), "seen": float(sn.sum()),
+                       "tail_where_larger": float(np.where(t > sn, t - sn, 0).sum()),
+                       "seen_where_larger": float(np.where(sn > t, sn - t, 0).sum()),
+                       "pixels_tail_over_2x": int(np.sum(t > 2 * sn + 1e-12))}
+        print(seed, " ".join(f"{k}: {o[k]['tail']:.0f}/{o[k]['seen']:.0f}" for k in ("0", "1", "8")),
+              "(tail/seen; 0: the path tracer alone)", flush=True)
     return out
 
 
@@ -220,6 +227,9 @@ def main() -> int:
     ap.add_argument("--k", type=int, default=1)
     ap.add_argument("--res", type=int, default=32)
     ap.add_argument("--spp", type=int, default=512)
+    ap.add_argument("--rate", type=float, default=0.25, help="tails: the training pass's chain rate")
+    ap.add_argument("--rr", type=int, default=None, help="tails: the path tracer's rr_depth")
+    ap.add_argument("--tails", type=int, default=1, help="classes: trace_tails (0: the fifteenth session's runs)")
     args = ap.parse_args()
     out = {"everywhere": everywhere, "classes": classes, "predict": predict, "tails": tails, "lobes": lobes}[args.mode](args)
     path = ROOT / "bench" / "results" / f"trace_diagnostics-{args.mode}-{args.scene}.json"

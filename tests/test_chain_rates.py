@@ -555,35 +555,55 @@ def test_training_records_the_guided_trace_forms_of_rate_zero(scenes_dir):
     assert off["trace_hits"].sum() <= off["alt_hits"].sum()
 
 
-def test_the_chains_sample_the_rate_zero_forms_second_moments(scenes_dir):
+@pytest.mark.parametrize("rate", [0.25, 1.0])
+def test_the_chains_sample_the_rate_zero_forms_second_moments(scenes_dir, rate):
     """Training records, beside the rate-0 forms' values, each form's second
-    moment of the chain paths as the chains sample it (trace<k>_tail: every
+    moment of the chain paths as the chains sample them (trace<k>_tail: every
     chain-path value Y entering the sample, times the path's contribution per
-    unit integrand under the form) and as the records see it (trace<k>_seen:
+    unit integrand under the form) and as the records see them (trace<k>_seen:
     the path tracer's chain paths squared, with the traces' (Z_1^2 + Z_2^2) /
     2k). Both estimate the integral of F^2 (b/p + k g) / (b + k g)^2, p the
     path tracer's roulette after the separator (design-notes "The traces'
     tails"). With the roulette on every segment (rr_depth 1; it raises the
     path tracer alone's sum ~1.5x here, 680-840 against 445-540 at rr_depth
-    5, where these short chains see none): over 16 passes the summed tails match the summed records
-    within 15 % and |z| < 4 (the spread of the per-pass differences) for the
-    path tracer alone and k = 1, 8 traces."""
+    5, where these short chains see none), over 16 passes the summed tails
+    match the summed records within 15 % (a third of the roulette's effect)
+    and |z| < 4 (the spread of the 16 per-pass differences; a false alarm
+    below 1e-4 per comparison) for the path tracer alone and k = 1, 8
+    traces. At rate 1 the estimator's share of the tail, whose roulette
+    chain_survival rebuilds, is the larger (the path tracer's share counts
+    its roulette as it ran); without MIS, where it would be the whole, the
+    estimator's tail is heavy-tailed (SMS's K: 0.80 of the records
+    typically, 3.1 once in 16 passes), so the test keeps MIS."""
     from stats_util import run_pass
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
     guide = _trained_guide(sc)
     tails, seen = [], []
     for seed in range(16):
-        r = run_pass(sc, "mpg", 512, 100 + seed, {"guide": guide, "chain_rate": 0.25, "handoff_guided": 3,
+        r = run_pass(sc, "mpg", 512, 100 + seed, {"guide": guide, "chain_rate": rate, "handoff_guided": 3,
                                                    "rr_depth": 1}, record_costs=True)
         nt = np.maximum(r["trace_n"], 1.0)
         tails.append([(r[k] / nt).sum() for k in ("trace_tail0", "trace1_tail", "trace8_tail")])
         seen.append([(r[k] / nt).sum() for k in ("trace_seen0", "trace1_seen", "trace8_seen")])
-        assert r["trace_chain_sum"].sum() > 0
     t, s = np.array(tails), np.array(seen)
     d = t - s
     z = d.mean(axis=0) / (d.std(axis=0, ddof=1) / np.sqrt(len(d)))
     assert np.all(np.abs(z) < 4), z
     assert np.all(np.abs(t.sum(axis=0) / s.sum(axis=0) - 1) < 0.15), t.sum(axis=0) / s.sum(axis=0)
+
+
+def _trace_acc(h, w):
+    """An accumulator of chain pixels at rate 1/8 (M 40, chain cost 5e3 rays
+    at rate 1 against 1e3), the path tracer alone as good as the chains at
+    rate 1 and seen often, every sample recording the traces (their values
+    still zero)."""
+    m2 = np.full((h, w), 40.0)
+    c1 = np.full((h, w), 5e3)
+    c0 = np.full((h, w), 1e3)
+    var = np.full((h, w), 2.0) + (1 / 0.125 - 1) * 40.0
+    a = _acc(m2, c1, c0, var, mean=3.0, alt_var=np.full((h, w), 2.0), alt_mean=3.0, alt_hits=64.0)
+    a.trace_n[...] = a.n
+    return a
 
 
 def test_rates_choose_the_guided_trace_where_it_pays():
@@ -596,14 +616,8 @@ def test_rates_choose_the_guided_trace_where_it_pays():
     trace False the traces' records are ignored: the rates do not move when
     the records do."""
     from mpg.chain_rates import learn_rates_traced
-    h, w = 6, 30
-    m2 = np.full((h, w), 40.0)
-    c1 = np.full((h, w), 5e3)
-    c0 = np.full((h, w), 1e3)
-    var = np.full((h, w), 2.0) + (1 / 0.125 - 1) * 40.0
-    a = _acc(m2, c1, c0, var, mean=3.0, alt_var=np.full((h, w), 2.0), alt_mean=3.0, alt_hits=64.0)
+    a = _trace_acc(6, 30)
     n = a.n
-    a.trace_n[...] = n   # (as if every sample recorded the traces)
 
     def put(cols, vs, var_z=0.0, rays=10.0, hits=64.0):
         """per k: the values' variance about the mean 3; one trace's variance; two traces' rays"""
@@ -644,14 +658,8 @@ def test_the_chains_second_moments_replace_the_records_own():
     win again. tails False: the records alone (the first two traced, the
     third not)."""
     from mpg.chain_rates import learn_rates_traced
-    h, w = 6, 18
-    m2 = np.full((h, w), 40.0)
-    c1 = np.full((h, w), 5e3)
-    c0 = np.full((h, w), 1e3)
-    var = np.full((h, w), 2.0) + (1 / 0.125 - 1) * 40.0
-    a = _acc(m2, c1, c0, var, mean=3.0, alt_var=np.full((h, w), 2.0), alt_mean=3.0, alt_hits=64.0)
+    a = _trace_acc(6, 18)
     n = a.n
-    a.trace_n[...] = n
     for k, v in zip((1, 2, 4, 8), (1.5, 1.0, 0.5, 0.2)):
         getattr(a, f"trace{k}_sum")[...] = 3.0 * n
         getattr(a, f"trace{k}_sum_sq")[...] = (v + 9.0) * n

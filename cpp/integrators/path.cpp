@@ -27,6 +27,9 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   bool sep_first = false;
   Vec3 sep_wo(0.f);   // the separator's BSDF sample direction (omega_D of a chain after it)
   double rr_sep = 1.0;  // the roulette's survival probabilities since it (Stats::sample_tail)
+  // ... and whether the tails cover the chain after it (a reflection at the
+  // separator, delta chain vertices; the estimator's side, estimate(), the same)
+  bool tail_ok = false;
   // every BSDF sample so far delta (PathParams::camera_delta)
   bool delta_prefix = true;
   const bool cd_only = mode == PathParams::CameraDelta::Only;
@@ -78,7 +81,11 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         st.sample_trace_hits_delta[i] += c * (ChainEstimator::guided_trace_pt_weight(shared, b, g, 1 << i) - 1.f);
       st.sample_trace_hit = true;
     }
-    st.sample_alt_chain += c;
+    if (!tail_ok) return;
+    // (the records' own view of the same: the path's value under each form)
+    st.sample_seen_P[0] += c;
+    for (int i = 0; i < Stats::kTraceKs; ++i)
+      st.sample_seen_P[i + 1] += c * ChainEstimator::guided_trace_pt_weight(shared, b, g, 1 << i);
     // (the path tracer alone's value is c = num / (b p): with b = 1, num = c p)
     tail_add(c * w_in, c * float(rr_sep), 1.0, shared && b > 0.0 ? g / b : 0.0, rr_sep);
   };
@@ -235,6 +242,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         sep_first = seps == 0;
         sep_wo = wo;
         rr_sep = 1.0;
+        tail_ok = !bs.transmission;
         sep_si = si;
         sep_ctx = ctx;
         tau.clear();
@@ -247,6 +255,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         if (chains_->is_chain_shape(si.shape) && !bs.null) {
           tau.push_back(bs.transmission ? 'T' : 'R');
           chain_si.push_back(si);
+          tail_ok = tail_ok && bs.delta && tau.size() <= size_t(ChainDistribution::kMaxN);
         } else {
           chain_ok = false;
         }

@@ -761,6 +761,7 @@ ChainEstimator::TraceSample ChainEstimator::guided_trace_one(const SurfaceIntera
   ts.f = thr * Le;
   ts.b = b;
   ts.g = g;
+  ts.tail_ok = glm::dot(si.wi, si.ng) * glm::dot(wD, si.ng) > 0.f;
   st.guided_trace_hits++;
   return ts;
 }
@@ -928,35 +929,45 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     }
     result = f * kap * Le * float(scale);
     st.chain_contributions++;
-    if (dens && !lp.point) {
-      // (pt_density's factors without G: both densities per solid angle at x_D)
-      const double letters = pt_letters_pdf(chain, tau_star);
-      dens->unit = f * kap * Le;
+    // (the paths the tails cover: delta chain vertices only, at most kMaxN, a
+    // reflection at x_D -- the path tracer's side leaves out the same)
+    bool tails = dens && !lp.point && n <= ChainDistribution::kMaxN &&
+                 glm::dot(si.wi, si.ng) * glm::dot(wD, si.ng) > 0.f;
+    for (const ManifoldVertex& v : chain.v) tails = tails && !v.mf;
+    if (tails) {
+      // (pt_density's factors without G: both densities per solid angle at x_D;
+      // the letters' probabilities as the path tracer draws them, normal maps
+      // included, as guided_trace_densities takes them)
       const float pdf = scene_.bsdfs.pdf(ctx, si.wi, wD);
-      dens->b = letters > 0.0 ? double(pdf) * letters : 0.0;
-      dens->g = 0.0;
-      dens->n = n;
-      dens->sep_weight = pdf > 0.f ? f / pdf : Color(0.f);
-      for (int i = 0; i < n && i < ChainDistribution::kMaxN; ++i) {
-        // the path tracer's draw of the letter (pt_letters_pdf's rule): its weight and eta
+      double letters = 1.0;
+      for (int i = 0; i < n; ++i) {
+        // the path tracer's draw of the letter: its probability, weight and eta
         const SurfaceInteraction vi = vertex_interaction(chain, size_t(i));
         const BSDFContext vc = scene_.bsdfs.resolve(scene_.shapes[size_t(chain.v[size_t(i)].shape)].bsdf, vi);
         Vec3 wo;
         const BSDFSample bs = vc.leaf ? scene_.bsdfs.sample(vc, vi.wi, tau_star[size_t(i)] == 'R' ? 0.f : 1.f,
                                                             Vec2(0.5f), wo)
                                       : BSDFSample{};
-        dens->w[size_t(i)] = bs.pdf > 0.f ? bs.weight : Color(1.f);
-        dens->eta[size_t(i)] = bs.pdf > 0.f ? bs.eta : 1.f;
+        if (!(bs.pdf > 0.f) || !bs.delta || bs.null || bs.transmission != (tau_star[size_t(i)] == 'T')) {
+          letters = 0.0;
+          break;
+        }
+        letters *= double(bs.pdf);
+        dens->w[size_t(i)] = bs.weight;
+        dens->eta[size_t(i)] = bs.eta;
       }
-      bool passes = dens->want_g;   // the guided trace passes delta vertices only
-      for (const ManifoldVertex& v : chain.v) passes = passes && !v.mf;
+      dens->unit = f * kap * Le;
+      dens->b = double(pdf) * letters;
+      dens->g = 0.0;
+      dens->n = n;
+      dens->sep_weight = pdf > 0.f ? f / pdf : Color(0.f);
       const int li = light_index_[size_t(lp.emitter)];
-      if (passes && li >= 0) {
+      if (dens->want_g && li >= 0) {
         const size_t k = size_t(li);
         if (const ChainDistribution* leaf = guide_at(si.p, light_centre_[k], &st))
           dens->g = leaf_trace_pdf(*leaf, k, n, tau_bits(tau_star.data(), n), wD, nullptr);
       }
-      dens->ok = std::isfinite(dens->b) && std::isfinite(dens->g) && (dens->b > 0.0 || dens->g > 0.0);
+      dens->ok = dens->b > 0.0 && std::isfinite(dens->b) && std::isfinite(dens->g);
     }
     // The largest estimate as it enters the sample: after the roulette's 1/q
     // (path.cpp takes q the same way), where low rates make the fireflies.

@@ -231,13 +231,16 @@ class ChainEstimator {
   // `beta`: the path's throughput the caller multiplies the estimate by (count_limits
   // tallies the sample's part, beta x estimate).
   // `dens` (training's trace records, Stats::sample_tail): where the estimate
-  // found a chain path to an area light, the path's densities as the rate-0
+  // found a chain path to an area light through delta vertices (at most
+  // kMaxN) after a reflection at x_D (ok; others are left out, and the path
+  // tracer's side leaves out the same), the path's densities as the rate-0
   // forms see it: unit = f_s |cos| kappa Le (the path's value per solid angle
   // at x_D, throughput not included), b = the path tracer's solid-angle
-  // density of it (pdf_bsdf(omega_D) times its letters' probabilities; 0 where
-  // it does not share it), g = one guided trace's (want_g: the first
-  // separator; 0 otherwise or where the trace cannot pass a vertex). The value
-  // of the path with the path tracer and k traces is then unit / (b + k g).
+  // density of it (pdf_bsdf(omega_D) times its letters' probabilities as it
+  // draws them), g = one guided trace's (want_g: the first separator; 0
+  // otherwise). With the path tracer's roulette survival p along the chain,
+  // its part of form k's second moment is unit (b/p + k g) / (b + k g)^2 per
+  // unit (Stats::sample_tail).
   // For the path tracer's roulette along the path (PathIntegrator::
   // chain_survival): its BSDF sample's weight at x_D (f_s |cos| / pdf), and
   // at each of the n chain vertices its weight and eta as it draws the letter.

@@ -165,7 +165,7 @@ void RenderJob::run() {
               st.sample_trace_recorded = false;
               for (double& t : st.sample_tail) t = 0.0;
               st.sample_chain_part = Color(0.f);
-              st.sample_alt_chain = Color(0.f);
+              for (Color& c : st.sample_seen_P) c = Color(0.f);
               st.sample_delta_L = Color(0.f);
               Color Ls = integrator_->Li(scene, o, d, tmin, tmax, rng, st);
               if (ksplit > 1) {
@@ -234,8 +234,7 @@ void RenderJob::run() {
                 const Color& Cp = st.sample_chain_part;
                 bool fin = std::isfinite(Cp.x) && std::isfinite(Cp.y) && std::isfinite(Cp.z);
                 for (double t : st.sample_tail) fin = fin && std::isfinite(t);
-                const Color& P0 = st.sample_alt_chain;
-                fin = fin && std::isfinite(P0.x) && std::isfinite(P0.y) && std::isfinite(P0.z);
+                for (const Color& P : st.sample_seen_P) fin = fin && std::isfinite(P.x) && std::isfinite(P.y) && std::isfinite(P.z);
                 if (fin) {
                   for (int f = 0; f <= Stats::kTraceKs; ++f) ttail[f] += st.sample_tail[f];
                   for (int c = 0; c < 3; ++c) tchain[c] += Cp[c];
@@ -243,12 +242,13 @@ void RenderJob::run() {
                   auto msq = [](const Color& c) {
                     return (double(c.x) * c.x + double(c.y) * c.y + double(c.z) * c.z) / 3.0;
                   };
-                  tseen[0] += msq(P0);
+                  tseen[0] += msq(st.sample_seen_P[0]);
                   for (int f = 0; f < Stats::kTraceKs; ++f) {
                     const int kk = 1 << f;
-                    const double v = msq(P0 + st.sample_trace_hits_delta[f]) +
-                                     (msq(st.sample_traces[0].weighted(kk) * float(kk)) +
-                                      msq(st.sample_traces[1].weighted(kk) * float(kk))) / (2.0 * kk);
+                    double z2 = 0.0;
+                    for (const TraceSample& t : st.sample_traces)
+                      if (t.tail_ok) z2 += msq(t.weighted(kk) * float(kk));
+                    const double v = msq(st.sample_seen_P[f + 1]) + z2 / (2.0 * kk);
                     if (std::isfinite(v)) tseen[f + 1] += v;
                   }
                 }

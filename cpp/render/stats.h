@@ -21,6 +21,7 @@ namespace mpg {
 struct TraceSample {
   Color f{0.f};
   double b = 0.0, g = 0.0;
+  bool tail_ok = false;   // a reflection at the separator (Stats::sample_tail covers its path)
   // its share with k traces, by the multi-sample balance heuristic: f / (b + k g)
   Color weighted(int k) const {
     // in double: with b = 0 and a tiny g the float of 1 / (b + k g) would
@@ -91,19 +92,23 @@ struct Stats {
   // the chain paths as the chains sample them (design-notes "The traces'
   // tails"): sum over the sample's chain-path values Y (chain estimates as
   // they enter the sample, X / q, and the path tracer's shares of shared
-  // chain paths) of Y times the value V_k the same path has under form k,
-  // V_k = F / (b + k g) (index 0: the path tracer alone, V = F / b; index
-  // f + 1: k = 2^f traces; mean over RGB). E[sum Y V_k] = the integral of
-  // F^2 / (b + k g) over the chain paths, whichever technique found them, so
+  // chain paths) of Y times V_k = F (b/p + k g) / (b + k g)^2, the path's
+  // part of form k's second moment per unit of its integrand F (b the path
+  // tracer's density, p its roulette's survival after the separator, k g the
+  // traces'; index 0: the path tracer alone, V = F / (b p); index f + 1: k =
+  // 2^f traces; mean over RGB). E[sum Y V_k] = the integral of F^2 (b/p + k
+  // g) / (b + k g)^2 over the chain paths, whichever technique found them, so
   // the rare paths the path tracer and the traces seldom reach (their tails)
   // count at the chains' rate. sample_chain_part: the sum of the Y.
-  // The same moments as the records see them, for comparison (render.cpp's
-  // trace_seen): sample_alt_chain, the sample's chain paths the path tracer
-  // found (in the path tracer alone's value A), whose square and the traces'
-  // give each form's sum of squared path values.
+  // The same moments as the records see them (render.cpp's trace_seen):
+  // sample_seen_P[f], the sample's chain paths the path tracer found, as
+  // valued by form f (the path tracer alone's c; c w_k with k traces), whose
+  // square and the recorded traces' give each form's sum of squared path
+  // values. Both over the same paths: a reflection at the separator and delta
+  // chain vertices (TraceSample::tail_ok; estimate()'s PathDensities).
   double sample_tail[kTraceKs + 1] = {};
   Color sample_chain_part{0.f};
-  Color sample_alt_chain{0.f};
+  Color sample_seen_P[kTraceKs + 1] = {};
   // Per camera sample: the part of its value from the light seen through delta
   // scattering only (PathParams::CameraDelta), recorded in every sample. With
   // split_delta (set per pixel by the render worker when its delta-split count

@@ -329,7 +329,7 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
             # traced pixels rendered 15x the chains' variance where the record
             # had seen the traces 3x better; requiring the path tracer's own
             # min_hits as well left no traced pixel on double_slabs either.
-            # Hence learn_trace is off by default: design-notes.)
+            # Hence `tails`: the chains' view of those values, below.)
             n_t = np.maximum(finite(acc.trace_n), 1.0)
             el = has & ~negl & (_box_blur(finite(acc.trace_hits), radius, total=True) >= min_hits)
             # one trace's cost per sample, and the path tracer's weights' (any k)
