@@ -156,6 +156,9 @@ def _run(args) -> int:
             rates = (f"chain rates per pixel: mean {st['chain_rate_mean']:.3f}, "
                      f"{100 * st['chain_rate_fraction_one']:.0f} % at 1, "
                      f"{100 * st.get('chain_rate_fraction_pt', 0.0):.0f} % to the path tracer"
+                     + (f" ({100 * st['chain_rate_fraction_trace']:.0f} % with guided traces, "
+                        f"mean {st.get('guided_trace_mean_k', 0.0):.1f})"
+                        if st.get("chain_rate_fraction_trace", 0.0) > 0 else "")
                      if st.get("chain_rate_mode") == "per-pixel"
                      else f"chain rate {st['chain_rate_mean']:g}")
             if st.get("delta_split", "off") != "off":
