@@ -159,17 +159,16 @@ py::dict pass_to_dict(PassResult& r) {
     put("alt_sum_sq", r.alt_sum_sq, rgb);
     put("alt_hits", r.alt_hits, grey);
     put("delta_rays", r.delta_rays, grey);
+    // (k = 2^f traces; the tails' and records' index 0 is the path tracer alone)
+    put("trace_tail0", r.trace_tail[0], grey);
+    put("trace_seen0", r.trace_seen[0], grey);
     for (int f = 0; f < Stats::kTraceKs; ++f) {
       const std::string k = "trace" + std::to_string(1 << f);
       put((k + "_sum").c_str(), r.trace_sum[f], rgb);
       put((k + "_sum_sq").c_str(), r.trace_sum_sq[f], rgb);
       put((k + "_var").c_str(), r.trace_var[f], grey);
-    }
-    put("trace_tail0", r.trace_tail[0], grey);
-    put("trace_seen0", r.trace_seen[0], grey);
-    for (int f = 0; f < Stats::kTraceKs; ++f) {
-      put(("trace" + std::to_string(1 << f) + "_tail").c_str(), r.trace_tail[f + 1], grey);
-      put(("trace" + std::to_string(1 << f) + "_seen").c_str(), r.trace_seen[f + 1], grey);
+      put((k + "_tail").c_str(), r.trace_tail[f + 1], grey);
+      put((k + "_seen").c_str(), r.trace_seen[f + 1], grey);
     }
     put("trace_chain_sum", r.trace_chain_sum, rgb);
     put("trace_hits", r.trace_hits, grey);

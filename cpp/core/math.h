@@ -36,6 +36,10 @@ inline bool is_finite(const Vec3& v) {
   return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z);
 }
 inline bool is_black(const Color& c) { return c.x == 0.f && c.y == 0.f && c.z == 0.f; }
+// Mean over RGB of the square, in double (as the pixel statistics take it)
+inline double mean_square(const Color& c) {
+  return (double(c.x) * c.x + double(c.y) * c.y + double(c.z) * c.z) / 3.0;
+}
 
 // Build an orthonormal basis from a unit vector (Duff et al. 2017, "Building an
 // Orthonormal Basis, Revisited", Listing 3).

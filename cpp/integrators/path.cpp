@@ -58,7 +58,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   // (b / p + k g) / (b + k g)^2, num = F.
   auto tail_add = [&](const Color& Y, const Color& num, double b, double g, double p) {
     if (!trace_alt || is_black(Y) || !(p > 0.0)) return;
-    const double y = (double(Y.x) * num.x + double(Y.y) * num.y + double(Y.z) * num.z) / 3.0;
+    const double y = (double(Y.x) * num.x + double(Y.y) * num.y + double(Y.z) * num.z) / 3.0;   // mean over RGB
     for (int f = 0; f <= Stats::kTraceKs; ++f) {
       const double kg = f == 0 ? 0.0 : double(1 << (f - 1)) * std::max(g, 0.0);
       const double den = b + kg;

@@ -201,9 +201,6 @@ void count_walk(const WalkResult& r, int n, Stats& st, TrialTally* tally) {
   tally->later_rejections = r.later_rejections;
   for (int h = 0; h < kHalvingSlots; ++h) tally->steps[size_t(h)] += uint32_t(n * r.limited_tries[size_t(h)]);
 }
-double mean_square(const Color& c) {  // over RGB, as the pixel statistics
-  return (double(c.x) * c.x + double(c.y) * c.y + double(c.z) * c.z) / 3.0;
-}
 void count_seed(int n, TrialTally* tally) {
   if (tally)
     for (auto& s : tally->steps) s += uint32_t(n);
@@ -766,6 +763,14 @@ ChainEstimator::TraceSample ChainEstimator::guided_trace_one(const SurfaceIntera
   return ts;
 }
 
+bool ChainEstimator::pt_letter(const SurfaceInteraction& v, char letter, BSDFSample& bs) const {
+  const BSDFContext c = scene_.bsdfs.resolve(scene_.shapes[size_t(v.shape)].bsdf, v);
+  if (!c.leaf || !c.leaf->is_delta()) return false;
+  Vec3 wo;
+  bs = scene_.bsdfs.sample(c, v.wi, letter == 'R' ? 0.f : 1.f, Vec2(0.5f), wo);
+  return bs.pdf > 0.f && bs.delta && !bs.null && bs.transmission == (letter == 'T');
+}
+
 bool ChainEstimator::guided_trace_densities(const SurfaceInteraction& sep, const BSDFContext& sep_ctx,
                                             uint32_t sep_depth, uint32_t max_depth, const Vec3& wD,
                                             const SurfaceInteraction* verts, const std::string& tau,
@@ -780,12 +785,8 @@ bool ChainEstimator::guided_trace_densities(const SurfaceInteraction& sep, const
   // into its b; a vertex the guided trace cannot pass (not delta) gives g = 0.
   double letters = 1.0;
   for (int i = 0; i < n; ++i) {
-    const SurfaceInteraction& v = verts[i];
-    const BSDFContext c = scene_.bsdfs.resolve(scene_.shapes[size_t(v.shape)].bsdf, v);
-    if (!c.leaf || !c.leaf->is_delta()) return false;
-    Vec3 wo;
-    const BSDFSample bs = scene_.bsdfs.sample(c, v.wi, tau[size_t(i)] == 'R' ? 0.f : 1.f, Vec2(0.5f), wo);
-    if (!(bs.pdf > 0.f) || !bs.delta || bs.null || bs.transmission != (tau[size_t(i)] == 'T')) return false;
+    BSDFSample bs;
+    if (!pt_letter(verts[i], tau[size_t(i)], bs)) return false;
     letters *= double(bs.pdf);
   }
   // (wD is the sampled direction, not rebuilt from the hit points: the ray left
@@ -942,13 +943,8 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
       double letters = 1.0;
       for (int i = 0; i < n; ++i) {
         // the path tracer's draw of the letter: its probability, weight and eta
-        const SurfaceInteraction vi = vertex_interaction(chain, size_t(i));
-        const BSDFContext vc = scene_.bsdfs.resolve(scene_.shapes[size_t(chain.v[size_t(i)].shape)].bsdf, vi);
-        Vec3 wo;
-        const BSDFSample bs = vc.leaf ? scene_.bsdfs.sample(vc, vi.wi, tau_star[size_t(i)] == 'R' ? 0.f : 1.f,
-                                                            Vec2(0.5f), wo)
-                                      : BSDFSample{};
-        if (!(bs.pdf > 0.f) || !bs.delta || bs.null || bs.transmission != (tau_star[size_t(i)] == 'T')) {
+        BSDFSample bs;
+        if (!pt_letter(vertex_interaction(chain, size_t(i)), tau_star[size_t(i)], bs)) {
           letters = 0.0;
           break;
         }

@@ -288,6 +288,10 @@ class ChainEstimator {
   // vertices (Fresnel at dielectrics, 1 at conductors); -1 when a vertex is
   // glossy or normal-mapped (no sharing there).
   double pt_letters_pdf(const ManifoldChain& c, const std::string& tau) const;
+  // The path tracer's draw of letter `letter` ('R'/'T') at chain vertex `v`
+  // (its BSDF resolved there, a delta lobe forced): false where it cannot draw
+  // it (not delta, null, the other letter); bs: its probability, weight, eta.
+  bool pt_letter(const SurfaceInteraction& v, char letter, BSDFSample& bs) const;
   // b: the path tracer's density of a converged chain per unit area at x_L,
   // pdf_bsdf(omega_D) * pt_letters_pdf * G; 0 when the path is not shared.
   double pt_density(const ManifoldChain& c, const std::string& tau, const BSDFContext& ctx,

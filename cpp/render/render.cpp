@@ -230,6 +230,11 @@ void RenderJob::run() {
               static_assert(Stats::kTraceRecorded == 2, "the values below are formed from two traces");
               const bool rec = st.record_trace && st.sample_trace_recorded;
               if (rec) tn += 1.0;
+              // each recorded trace's share scaled to the whole, Z = k f / (b + k g), per k
+              Color z[Stats::kTraceKs][Stats::kTraceRecorded];
+              for (int f = 0; f < Stats::kTraceKs && rec; ++f)
+                for (int j = 0; j < Stats::kTraceRecorded; ++j)
+                  z[f][j] = st.sample_traces[j].weighted(1 << f) * float(1 << f);
               if (rec && ok) {
                 const Color& Cp = st.sample_chain_part;
                 bool fin = std::isfinite(Cp.x) && std::isfinite(Cp.y) && std::isfinite(Cp.z);
@@ -239,25 +244,20 @@ void RenderJob::run() {
                   for (int f = 0; f <= Stats::kTraceKs; ++f) ttail[f] += st.sample_tail[f];
                   for (int c = 0; c < 3; ++c) tchain[c] += Cp[c];
                   // the records' own: P^2 + (Z_1^2 + Z_2^2) / (2 k), mean over RGB
-                  auto msq = [](const Color& c) {
-                    return (double(c.x) * c.x + double(c.y) * c.y + double(c.z) * c.z) / 3.0;
-                  };
-                  tseen[0] += msq(st.sample_seen_P[0]);
+                  tseen[0] += mean_square(st.sample_seen_P[0]);
                   for (int f = 0; f < Stats::kTraceKs; ++f) {
-                    const int kk = 1 << f;
                     double z2 = 0.0;
-                    for (const TraceSample& t : st.sample_traces)
-                      if (t.tail_ok) z2 += msq(t.weighted(kk) * float(kk));
-                    const double v = msq(st.sample_seen_P[f + 1]) + z2 / (2.0 * kk);
+                    for (int j = 0; j < Stats::kTraceRecorded; ++j)
+                      if (st.sample_traces[j].tail_ok) z2 += mean_square(z[f][j]);
+                    const double v = mean_square(st.sample_seen_P[f + 1]) + z2 / (2.0 * (1 << f));
                     if (std::isfinite(v)) tseen[f + 1] += v;
                   }
                 }
               }
               if (rec && ok && (st.sample_owned_hit || st.sample_trace_hit)) thits += 1.0;
               for (int f = 0; f < Stats::kTraceKs && rec; ++f) {
-                const int kk = 1 << f;
-                const Color z1 = st.sample_traces[0].weighted(kk) * float(kk);
-                const Color z2 = st.sample_traces[1].weighted(kk) * float(kk);
+                const Color& z1 = z[f][0];
+                const Color& z2 = z[f][1];
                 const Color Tv = ok ? A + st.sample_trace_hits_delta[f] + (z1 + z2) * 0.5f : Color(0.f);
                 if (!(std::isfinite(Tv.x) && std::isfinite(Tv.y) && std::isfinite(Tv.z))) continue;
                 double dz = 0.0;
