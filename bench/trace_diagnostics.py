@@ -5,7 +5,8 @@ rates choose the guided trace"; docs/results.md, fifteenth session).
         mpg as it is against the path tracer with k guided traces at every
         first separator and no chain estimate at all (the learned rate map
         replaced by zeros, the trace map by k everywhere), interleaved per
-        seed; prints the MSE less the reference's floor.
+        seed; prints the MSE less the reference's floor. --set '{"delta_split": 2}':
+        more mpg parameters for the traced renders.
     python bench/trace_diagnostics.py classes pool --time 20 [--tails 0]
         mpg with learn_trace off and on (seed 0; --tails 0: without
         trace_tails, as the fifteenth session ran it): per class of pixel (traced
@@ -21,6 +22,15 @@ rates choose the guided trace"; docs/results.md, fifteenth session).
         rate-0 forms' second moments of the chain paths as the chains
         sample them (trace<k>_tail) against the records' own (trace<k>_seen),
         summed over the image and over the pixels where each is larger.
+    python bench/trace_diagnostics.py bound double_slabs --spp 64 --seeds 2 --ks 8 32
+        how far below `path` any estimator of the chain light at the first
+        separator can bring the MSE at equal samples per pixel: `path`
+        against the path tracer with k guided traces at every first
+        separator (rate 0 everywhere, a guide from --guide-spp spp at rate
+        1), each at --spp, the scene's own resolution; as k grows the
+        chain part tends to its mean given the camera path, and what
+        remains is the pixel footprint's and the other light's variance.
+        Prints each one's MSE less the reference's floor and its seconds.
     python bench/trace_diagnostics.py lobes pool
         ns per lobe of ChainDistribution::pdf_dir over the largest leaves,
         against ns per ray of `path` (one thread): chain_rates.LOBE_COST.
@@ -84,6 +94,8 @@ def everywhere(args) -> dict:
             G.learn_rates_traced = zeros if traced else learn
             G.guided_trace_map = (lambda acc, **k: np.ones(acc.chain_m2.shape, np.float32)) if traced else tmap
             p = {"type": "mpg", "handoff_guided": args.k if traced else 4, "learn_trace": False}
+            if traced:
+                p.update(json.loads(args.set))
             img = mpg.render(sc, p, time=args.time, seed=seed, progress=False)
             st = img.stats
             rec = {"seed": seed, "own_mse": metrics.mse(img.rgb, ref) - floor, "spp": int(img.spp),
@@ -196,6 +208,42 @@ def tails(args) -> dict:
     return out
 
 
+def bound(args) -> dict:
+    import mpg
+    from mpg import metrics
+    sc, ref, floor = _reference(args.scene)
+    t0 = time.perf_counter()
+    g = _guide(sc, args.guide_spp)
+    out: dict = {"floor": floor, "guide_seconds": time.perf_counter() - t0, "runs": {}}
+    H, W = ref.shape[:2]
+    zero = np.zeros((H, W), np.float32)
+    # d > 1: each sample's light seen through delta scattering alone averaged
+    # over d branched camera paths (delta_split, delta_branch 8, as mpg's
+    # learned map gives where it pays)
+    runs = [(0, 1)] + [(k, 1) for k in args.ks] + [(k, args.delta) for k in [0] + list(args.ks) if args.delta > 1]
+    for seed in range(args.seeds):
+        for k, d in runs:
+            name = ("path" if k == 0 and d == 1 else f"trace{k}") + (f"+delta{d}" if d > 1 else "")
+            if name == "path":
+                img = mpg.render(sc, "path", spp=args.spp, seed=seed, progress=False)
+            else:
+                img = mpg.render(sc, {"type": "mpg", "guide": g, "chain_rate": 1.0, "handoff_guided": max(k, 1),
+                                      "delta_branch": 8},
+                                 spp=args.spp, seed=seed, progress=False, chain_rate_map=zero,
+                                 guided_trace_map=np.full((H, W), k, np.float32),
+                                 delta_split_map=np.full((H, W), d, np.float32))
+            rec = {"seed": seed, "own_mse": metrics.mse(img.rgb, ref) - floor,
+                   "seconds": float(img.stats["seconds"]), "spp": int(img.spp)}
+            out["runs"].setdefault(name, []).append(rec)
+            print(name, rec, flush=True)
+    base = np.mean([r["own_mse"] for r in out["runs"]["path"]])
+    for name, rs in out["runs"].items():
+        m = np.mean([r["own_mse"] for r in rs])
+        print(f"== {name}: own MSE {m:.5g} (path / it {base / m:.2f}), "
+              f"{np.mean([r['seconds'] for r in rs]):.1f} s for {args.spp} spp")
+    return out
+
+
 def lobes(args) -> dict:
     import mpg
     sc = mpg.load_file(ROOT / "scenes" / "eval" / f"{args.scene}.xml", res="64")
@@ -220,7 +268,7 @@ def lobes(args) -> dict:
 def main() -> int:
     sys.path.insert(0, str(ROOT / "bench"))
     ap = argparse.ArgumentParser()
-    ap.add_argument("mode", choices=["everywhere", "classes", "predict", "tails", "lobes"])
+    ap.add_argument("mode", choices=["everywhere", "classes", "predict", "tails", "bound", "lobes"])
     ap.add_argument("scene")
     ap.add_argument("--time", type=float, default=20.0)
     ap.add_argument("--seeds", type=int, default=2)
@@ -230,8 +278,13 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=0.25, help="tails: the training pass's chain rate")
     ap.add_argument("--rr", type=int, default=None, help="tails: the path tracer's rr_depth")
     ap.add_argument("--tails", type=int, default=1, help="classes: trace_tails (0: the fifteenth session's runs)")
+    ap.add_argument("--set", default="{}", help="everywhere: JSON of more mpg parameters for the traced renders")
+    ap.add_argument("--ks", type=int, nargs="+", default=[8, 32], help="bound: the trace counts")
+    ap.add_argument("--delta", type=int, default=2, help="bound: also with this delta split (1: none)")
+    ap.add_argument("--guide-spp", type=int, default=16, help="bound: the guide's spp at rate 1")
     args = ap.parse_args()
-    out = {"everywhere": everywhere, "classes": classes, "predict": predict, "tails": tails, "lobes": lobes}[args.mode](args)
+    out = {"everywhere": everywhere, "classes": classes, "predict": predict, "tails": tails, "bound": bound,
+           "lobes": lobes}[args.mode](args)
     path = ROOT / "bench" / "results" / f"trace_diagnostics-{args.mode}-{args.scene}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({"command": " ".join(["python", "bench/trace_diagnostics.py"] + sys.argv[1:]),
