@@ -701,3 +701,53 @@ def test_learn_trace_renders_end_to_end_and_is_deterministic(scenes_dir):
     asked = mpg.render(sc, integrator={"type": "mpg", "chain_rate": 0.5, "learn_trace": True}, spp=8, seed=3,
                        progress=False)
     assert any("learn_trace" in w for w in asked.stats["warnings"])
+
+
+def test_the_rates_and_the_delta_split_learned_together_see_what_the_other_takes():
+    """learn_jointly: each of the rates and the delta split weighs a pixel's
+    gain against the image's mean variance; learned one after the other, each
+    sees the variance the other would take away and chooses nothing here.
+    Columns 0-5 hold the light seen in the glass (variance 40 a sample, a
+    delta path costing half a sample), columns 6-11 a guided trace that
+    halves the path tracer alone's variance (2 -> 1) for 100 rays (a sample
+    costs 1e3). Alone: mean(V) 22 at the learned rates, so the trace's 1/22
+    is below its 100/1e3 of the cost, and the split, weighed against the
+    training's variance (282 + 20 a sample at rate 1/8), is not worth its
+    cost either. Together: the split against the rates' 22 (40 x 1e3 > 2 x
+    500 x 22) takes 40 (1 - 1/24) from half the pixels, mean(V) falls to
+    2.8, and the trace pays (1/2.8 > 100/1.5e3)."""
+    from mpg.chain_rates import (BRANCH_RESIDUAL, TREE_COST, delta_split_effect, learn_delta_split,
+                                 learn_jointly, learn_rates_traced)
+    h, w = 6, 12
+    glint = np.zeros((h, w))
+    glint[:, :6] = 40.0
+    a = _trace_acc(h, w)
+    n = a.n
+    var = np.full((h, w), 2.0) + (1 / 0.125 - 1) * 40.0 + glint
+    a.sum_sq = np.repeat(((var * (n - 1) / n) + 9.0)[..., None] * n, 3, axis=2)
+    a.alt_sum_sq = np.repeat((2.0 + glint + 9.0)[..., None] * n, 3, axis=2)
+    a.delta_sum = np.full((h, w, 3), 0.25 * n)
+    a.delta_sum_sq = np.repeat(((glint * (n - 1) / n) + 0.0625)[..., None] * n, 3, axis=2)
+    a.delta_rays = np.full((h, w), 499.0 * n)   # o = 500
+    for k in (1, 2, 4, 8):   # the traced values: variance 1 in columns 6-11, no gain in 0-5
+        getattr(a, f"trace{k}_sum")[...] = 3.0 * n
+        getattr(a, f"trace{k}_sum_sq")[...] = (np.where(glint > 0, 2.0 + glint, 1.0) + 9.0)[..., None] * n
+    a.trace_rays[...] = 200.0 * n   # two traces recorded: 100 rays each
+    a.trace_hits[...] = 64.0
+    kw = dict(radius=0, handoff=True, trace=True, tails=False)
+    q, t, info = learn_rates_traced(a, objective="mse", **kw)
+    f = n / (n - 1)   # the samples' variances are unbiased: x n / (n - 1)
+    assert np.all(q == 0.0) and not np.any(t) and info["chain_rate_model_v"] == pytest.approx(22.0 * f, rel=1e-6)
+    k_alone, _ = learn_delta_split(a, q, radius=0, objective="mse", branched=True)
+    assert np.all(k_alone == 1)
+    qj, tj, infoj, kj, kinfo = learn_jointly(a, objective="mse", branched=True, **kw)
+    assert np.all(kj[:, :6] == 2) and np.all(kj[:, 6:] == 1) and kinfo["delta_split_fraction"] == 0.5
+    assert np.all(tj[:, 6:] == 1) and np.all(tj[:, :6] == 0) and np.all(qj == 0.0)
+    assert infoj["joint_rounds"] == 2   # the second round's split is the first's
+    dv, dc = delta_split_effect(a, kj, radius=0, objective="mse", branched=True)
+    assert dv == pytest.approx(0.5 * 40.0 * (1 - BRANCH_RESIDUAL), rel=1e-6)
+    assert dc == pytest.approx(0.5 * TREE_COST * 500.0, rel=1e-6)
+    assert infoj["chain_rate_model_v"] == pytest.approx(22.0 * f - dv - 0.5 * 1.0 * f, rel=1e-6)
+    # one round: the split alone, the rates once more with its effect -- the same maps here
+    q1, t1, _, k1, _ = learn_jointly(a, objective="mse", branched=True, rounds=1, **kw)
+    assert np.array_equal(k1, kj) and np.array_equal(t1, tj)

@@ -141,6 +141,36 @@ def test_learned_split_is_eq3():
     assert np.isfinite(kn).all() and kn.min() >= 1
 
 
+def test_the_split_weighs_against_the_means_given_and_its_effect_is_its_model():
+    """learn_delta_split with means=(mean(wV), mean(C)) (learn_jointly's: the
+    render's as the rates predict it) splits by the same rule against those;
+    delta_split_effect gives what a map takes from mean(wV) and adds to
+    mean(C) in that model: branched, (1 - BRANCH_RESIDUAL / (k - 1)) B at
+    TREE_COST o (k - 1); unbranched, (1 - 1/k) B at o (k - 1)."""
+    from mpg.chain_rates import BRANCH_RESIDUAL, delta_split_effect
+    var_t = np.full((4, 4), 1.0)
+    var_d = np.zeros((4, 4))
+    var_d[0, :] = 0.9
+    var_d[1, :] = 0.1
+    acc = _acc(var_d, var_t, np.full((4, 4), 2.0), rays=4.0)   # o = 3
+    q = np.zeros((4, 4), np.float32)
+    k_own, _ = learn_delta_split(acc, q, radius=0, objective="mse", branched=True)
+    # against the training's means (V 1, C 4): 0.9 x 4 < 2 x 3 x 1, none
+    assert np.all(k_own == 1)
+    for v, c in ((1.0, 4.0), (0.2, 24.0), (0.01, 24.0)):
+        k, _ = learn_delta_split(acc, q, radius=0, objective="mse", branched=True, means=(v, c))
+        np.testing.assert_array_equal(k, np.where(var_d * c > TREE_COST * 3.0 * v, 2.0, 1.0))
+    assert np.all(k[:2] == 2) and np.all(k[2:] == 1)
+    dv, dc = delta_split_effect(acc, k, radius=0, objective="mse", branched=True)
+    assert dv == pytest.approx(np.mean(np.where(k > 1, var_d, 0.0)) * (1 - BRANCH_RESIDUAL), rel=1e-6)
+    assert dc == pytest.approx(0.5 * TREE_COST * 3.0, rel=1e-6)
+    k4 = np.where(var_d > 0, 4.0, 1.0)
+    dv, dc = delta_split_effect(acc, k4, radius=0, objective="mse")
+    assert dv == pytest.approx(np.mean(var_d) * 0.75, rel=1e-6)
+    assert dc == pytest.approx(0.5 * 3.0 * 3.0, rel=1e-6)
+    assert delta_split_effect(acc, np.ones((4, 4)), radius=0, objective="mse") == (0.0, 0.0)
+
+
 def test_mpg_splits_where_the_camera_sees_glass_and_stays_unbiased(sphere, sphere32_path_ref):
     """mpg's learned map is > 1 only near pixels that see the light in the glass;
     with a uniform delta_split=4 mpg agrees with the path tracer

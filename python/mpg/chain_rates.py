@@ -231,7 +231,8 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
                        iterations: int = 50, objective: str = "relmse",
                        handoff: bool = True, min_hits: float = HANDOFF_MIN_HITS,
                        negligible: float = HANDOFF_NEGLIGIBLE,
-                       trace: bool = False, tails: bool = True) -> tuple[np.ndarray, np.ndarray, dict]:
+                       trace: bool = False, tails: bool = True, v_offset: float = 0.0,
+                       c_offset: float = 0.0, trace_min_hits: float | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Per-pixel rates by Eq. (1) of the module docstring, the count of guided
     traces of handed-off pixels per pixel (0 or one of TRACE_KS; only rate-0
     pixels trace), and a summary.
@@ -271,8 +272,14 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
     in place of the records' own (acc.trace<k>_seen): the same expectation,
     but the rare paths the path tracer and the traces seldom reach -- a small
     light's image the lobes miss in part -- come at the chains' rate, where
-    the records' few samples per pixel miss them (pool)."""
+    the records' few samples per pixel miss them (pool).
+
+    v_offset, c_offset: what the delta split (learn_delta_split) takes from
+    mean(wV) and adds to mean(C) (delta_split_effect), so that the rates see
+    the variance that is left beside the chains' (learn_jointly)."""
     shape = acc.chain_m2.shape
+    if trace_min_hits is None:
+        trace_min_hits = min_hits
     info: dict = {"chain_rate_min_allowed": q_min}
     if acc.n < 2:
         info["chain_rate_learned"] = False
@@ -290,7 +297,7 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
     wgt = _weights(mean, objective, radius)
     m2 = m2_raw * wgt
     # V1 = V(q_t) - (1/q_t - 1) M: only its image mean enters Eq. (1)
-    v1_mean = max(float(np.mean(wgt * var_t - (1.0 / q_t - 1.0) * m2)), 0.0)
+    v1_mean = max(float(np.mean(wgt * var_t - (1.0 / q_t - 1.0) * m2)) - v_offset, 0.0)
     m2_b = _box_blur(m2, radius)
     c1_b = _box_blur(c1, radius)
     has = c1_b > 0.0   # chain work here (M = 0: all cost, no light -> q_min)
@@ -331,7 +338,7 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
             # min_hits as well left no traced pixel on double_slabs either.
             # Hence `tails`: the chains' view of those values, below.)
             n_t = np.maximum(finite(acc.trace_n), 1.0)
-            el = has & ~negl & (_box_blur(finite(acc.trace_hits), radius, total=True) >= min_hits)
+            el = has & ~negl & (_box_blur(finite(acc.trace_hits), radius, total=True) >= trace_min_hits)
             # one trace's cost per sample, and the path tracer's weights' (any k)
             ray1 = (finite(acc.trace_rays) + LOBE_COST * finite(acc.trace_lobes)) / (n_t * TRACES_RECORDED)
             pt_w = LOBE_COST * finite(acc.trace_pt_lobes) / n_t
@@ -354,7 +361,7 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
         path tracer with TRACE_KS[pt - 2] traces."""
         conds = [pt == f + 1 for f in range(len(forms_dv))]
         v = v1_mean + float(np.mean(np.select(conds, forms_dv, (1.0 / q - 1.0) * m2_b)))
-        c = float(np.mean(c0 + np.select(conds, forms_dc, q * c1_b)))
+        c = float(np.mean(c0 + np.select(conds, forms_dc, q * c1_b))) + c_offset
         return v, c
 
     def zero_form(v_mean, c_mean):
@@ -460,8 +467,40 @@ TREE_COST = 2.0
 BRANCH_RESIDUAL = 1.0 / 24.0
 
 
+def _delta_parts(acc: CostAccumulator, objective: str, radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """(b, o) per pixel: the weighted variance of the light seen through delta
+    scattering only (blurred over the window) and a delta path's cost in
+    samples (1 + the rays a sample traced after delta scattering only)."""
+    n = float(acc.n)
+    var_d = _sample_variance(acc.delta_sum, acc.delta_sum_sq, n)
+    wgt = _weights(_finite(acc.sum) / n, objective, radius)
+    return _box_blur(wgt * var_d, radius), 1.0 + _finite(acc.delta_rays) / n
+
+
+def delta_split_effect(acc: CostAccumulator, k: np.ndarray, radius: int = 3, objective: str = "relmse",
+                       branched: bool = False) -> tuple[float, float]:
+    """(dv, dc): what a delta split map k takes from mean(wV) and adds to
+    mean(C) (ray units), in learn_delta_split's model: k - 1 branched paths
+    leave BRANCH_RESIDUAL / (k - 1) of the light's variance B at TREE_COST o
+    each, k unbranched ones 1 / k of it at o each."""
+    if acc.n < 2:
+        return 0.0, 0.0
+    b, o = _delta_parts(acc, objective, radius)
+    k = np.asarray(k, dtype=float)
+    split = k > 1.0
+    km1 = np.maximum(k - 1.0, 1.0)
+    if branched:
+        kept, cost = BRANCH_RESIDUAL / km1, TREE_COST * o * km1
+    else:
+        kept, cost = 1.0 / np.maximum(k, 1.0), o * km1
+    dv = float(np.mean(np.where(split, b * (1.0 - kept), 0.0)))
+    dc = float(np.mean(np.where(split, cost, 0.0)))
+    return dv, dc
+
+
 def learn_delta_split(acc: CostAccumulator, q: np.ndarray, radius: int = 3, objective: str = "relmse",
-                      k_max: int = DELTA_SPLIT_MAX, branched: bool = False) -> tuple[np.ndarray, dict]:
+                      k_max: int = DELTA_SPLIT_MAX, branched: bool = False,
+                      means: tuple[float, float] | None = None) -> tuple[np.ndarray, dict]:
     """Per-pixel count k of camera paths that estimate the light seen through
     delta scattering only (design-notes "Splitting the light seen in the
     glass").
@@ -486,21 +525,25 @@ def learn_delta_split(acc: CostAccumulator, q: np.ndarray, radius: int = 3, obje
     on the sphere's light in the glass a branched path's variance was 1/24 of
     an unbranched one's), at TREE_COST o. To first order in F, that lowers F
     iff w_p B_p / mean(wV) > TREE_COST o_p / mean(C): k = 2 there, 1
-    elsewhere (a second branched path would only halve the small rest)."""
+    elsewhere (a second branched path would only halve the small rest).
+
+    means: (mean(wV), mean(C)) to weigh the split against, the render's as
+    the rates' model predicts it (learn_jointly); None: the training
+    samples' variance and the cost at rates q."""
     shape = acc.delta_rays.shape
     info: dict = {}
     if acc.n < 2:
         return np.ones(shape, dtype=np.float32), info
     n = float(acc.n)
 
-    _, _, c1, mis, c0 = _costs(acc, n)
-    c_mean = float(np.mean(c0 + np.where(q <= 0.0, -mis, np.clip(q, 0.0, 1.0) * c1)))
-    var_t = _sample_variance(acc.sum, acc.sum_sq, n)
-    var_d = _sample_variance(acc.delta_sum, acc.delta_sum_sq, n)
-    wgt = _weights(_finite(acc.sum) / n, objective, radius)
-    v_mean = float(np.mean(wgt * var_t))
-    o = 1.0 + _finite(acc.delta_rays) / n
-    b = _box_blur(wgt * var_d, radius)
+    b, o = _delta_parts(acc, objective, radius)
+    if means is None:
+        _, _, c1, mis, c0 = _costs(acc, n)
+        c_mean = float(np.mean(c0 + np.where(q <= 0.0, -mis, np.clip(q, 0.0, 1.0) * c1)))
+        var_t = _sample_variance(acc.sum, acc.sum_sq, n)
+        v_mean = float(np.mean(_weights(_finite(acc.sum) / n, objective, radius) * var_t))
+    else:
+        v_mean, c_mean = float(means[0]), float(means[1])
     k = np.ones(shape)
     if v_mean > 0.0 and c_mean > 0.0 and branched:
         k = np.where(b * c_mean > TREE_COST * o * v_mean, 2.0, 1.0)
@@ -511,6 +554,49 @@ def learn_delta_split(acc: CostAccumulator, q: np.ndarray, radius: int = 3, obje
     info.update(delta_split_fraction=float(np.mean(split)),
                 delta_split_mean=float(np.mean(k[split])) if np.any(split) else 1.0)
     return k.astype(np.float32), info
+
+
+# learn_jointly: at most this many rounds of the delta split and the rates.
+JOINT_ROUNDS = 3
+
+
+def learn_jointly(acc: CostAccumulator, objective: str = "relmse", branched: bool = False,
+                  rounds: int = JOINT_ROUNDS, radius: int = 3, **rate_kw) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray, dict]:
+    """The rates, guided traces and delta split learned together: (q, traces,
+    rates' info, delta split k, split's info).
+
+    Each of learn_rates_traced and learn_delta_split weighs a pixel's gain
+    against the image's mean variance, mean(wV) (the linearised share of F =
+    mean(wV) mean(C)). Learned one after the other, each saw in mean(wV) the
+    variance the other takes away -- the light seen in the glass in the
+    rates', the chains' in the split's -- and chose too little: on
+    double_slabs one guided trace at every first separator and two branched
+    delta paths everywhere rendered 10.6x below `path` at equal samples per
+    pixel, each alone 1.6x and 2.2x (their variances add), yet the learned
+    maps traced 14 % of the pixels and split 2 % (docs/results.md,
+    seventeenth session). So: the rates alone; then, per round, the split
+    weighed against the rates' predicted means (chain_rate_model_v/_c) and
+    the rates again with what that split takes from mean(wV) and adds to
+    mean(C) (delta_split_effect) -- until the split stops changing, at most
+    `rounds` rounds. radius: all three's window; rate_kw: learn_rates_traced's
+    other arguments."""
+    q, t, info = learn_rates_traced(acc, objective=objective, radius=radius, **rate_kw)
+    k = np.ones(acc.chain_m2.shape, dtype=np.float32)
+    kinfo: dict = {}
+    done = 0
+    if not info.get("chain_rate_learned"):
+        return q, t, info, k, kinfo
+    for done in range(1, rounds + 1):
+        k_new, kinfo = learn_delta_split(acc, q, radius=radius, objective=objective, branched=branched,
+                                         means=(info["chain_rate_model_v"], info["chain_rate_model_c"]))
+        if done > 1 and np.array_equal(k_new, k):
+            break
+        k = k_new
+        dv, dc = delta_split_effect(acc, k, radius=radius, objective=objective, branched=branched)
+        q, t, info = learn_rates_traced(acc, objective=objective, radius=radius, v_offset=dv, c_offset=dc,
+                                        **rate_kw)
+    info["joint_rounds"] = done
+    return q, t, info, k, kinfo
 
 
 def rate_map_grey8(q: np.ndarray, q_low: float = 1.0 / 32) -> np.ndarray:

@@ -18,7 +18,7 @@ import numpy as np
 
 from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, STEP_COST, CostAccumulator, _sample_variance,
                              guided_trace_map, learn_delta_split, learn_pixel_split, learn_rates,
-                             learn_rates_traced)
+                             learn_jointly, learn_rates_traced)
 from mpg.errors import RenderError
 
 
@@ -68,6 +68,14 @@ LEARN_TRACE = True
 # is level and double_slabs, ring, sphere and slab gain 1.1-2.4x
 # (docs/results.md, sixteenth session)
 TRACE_TAILS = True
+# The rates, traces and delta split learned together (chain_rates.learn_jointly),
+# and the samples with chain light a guided trace form's window needs (the path
+# tracer alone's form keeps HANDOFF_MIN_HITS, 64): with the two, own MSE at 20 s,
+# 3 seeds, double_slabs 1.24x, sphere 1.20x, ring 1.16x lower, slab 0.95x, pool
+# level; either alone left double_slabs level (docs/results.md, seventeenth
+# session)
+JOINT_MAPS = True
+TRACE_MIN_HITS = 16.0
 # The pixel split's default (learned for MSE) and the cap on its predicted cost
 # per sample (design-notes "Splitting the pixels"; docs/results.md, eleventh session)
 PIXEL_SPLIT = "mse"
@@ -231,6 +239,18 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     asked_trace = "learn_trace" in params
     learn_trace = _as_bool("learn_trace", params.pop("learn_trace", LEARN_TRACE))
     trace_tails = _as_bool("trace_tails", params.pop("trace_tails", TRACE_TAILS))
+    # joint_maps: the rates, traces and delta split learned together
+    # (chain_rates.learn_jointly); off: one after the other
+    joint = _as_bool("joint_maps", params.pop("joint_maps", JOINT_MAPS))
+    # trace_min_hits: the samples with chain light a trace form's window needs
+    # (chain_rates.learn_rates_traced)
+    trace_min_hits = params.pop("trace_min_hits", TRACE_MIN_HITS)
+    try:
+        trace_min_hits = None if trace_min_hits is None else float(trace_min_hits)
+    except (TypeError, ValueError):
+        raise RenderError(f"trace_min_hits must be a number, got {trace_min_hits!r}") from None
+    if trace_min_hits is not None and not trace_min_hits >= 0.0:
+        raise RenderError(f"trace_min_hits must be >= 0, got {trace_min_hits}")
     if learn_trace and not auto:
         if asked_trace:   # (the default's learn_trace simply has nothing to do at a fixed rate)
             warnings.append("learn_trace needs learned rates (chain_rate=auto); ignored")
@@ -423,16 +443,23 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         return qmap if qmap is not None else uniform(params["chain_rate"])
 
     if costs is not None:
-        qmap, tmap, rate_info = learn_rates_traced(costs, q_min=q_min, objective=objective, handoff=handoff,
-                                                   negligible=negligible,
-                                                   trace=learn_trace and params["handoff_guided"] > 0,
-                                                   tails=trace_tails)
+        rate_kw = dict(q_min=q_min, handoff=handoff, negligible=negligible,
+                       trace=learn_trace and params["handoff_guided"] > 0, tails=trace_tails,
+                       trace_min_hits=trace_min_hits)
+        joint_k = None
+        if joint and split == "auto" and costs.n > 0:
+            qmap, tmap, rate_info, joint_k, kinfo = learn_jointly(costs, objective=objective,
+                                                                  branched=params["delta_branch"] > 0, **rate_kw)
+        else:
+            qmap, tmap, rate_info = learn_rates_traced(costs, objective=objective, **rate_kw)
         if learn_trace:
             rate_info["trace_records"] = float(np.sum(costs.trace_n))   # samples that recorded the traces
         if not rate_info.get("chain_rate_learned"):
             # too little training (< 2 spp): the training rate throughout
             qmap, tmap, rate_info = None, None, {}
-        if split == "auto" and costs.n > 0:
+        if split == "auto" and costs.n > 0 and joint_k is not None and qmap is not None:
+            kmap = learned(joint_k, kinfo)
+        elif split == "auto" and costs.n > 0:
             kmap = learned(*learn_delta_split(costs, rates(), objective=objective,
                                               branched=params["delta_branch"] > 0))
     if isinstance(split, int) and split > 1:

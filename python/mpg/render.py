@@ -30,10 +30,11 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff",
                 "chain_handoff_negligible",
                 "delta_split", "pixel_split", "pixel_split_max_cost", "limit_in_training", "known_types",
-                "handoff_guided", "learn_trace", "trace_tails"}
+                "handoff_guided", "learn_trace", "trace_tails", "joint_maps",
+                "trace_min_hits"}
 BOOL_PARAMS = {"hide_emitters", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "mis_rate", "chain_handoff", "limit_in_training", "known_types",
-               "learn_trace", "trace_tails"}
+               "learn_trace", "trace_tails", "joint_maps"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
 # The SMS paper's integrators, with their parameter names, map onto `sms`.
 SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
