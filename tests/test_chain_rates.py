@@ -748,6 +748,34 @@ def test_the_rates_and_the_delta_split_learned_together_see_what_the_other_takes
     assert dv == pytest.approx(0.5 * 40.0 * (1 - BRANCH_RESIDUAL), rel=1e-6)
     assert dc == pytest.approx(0.5 * TREE_COST * 500.0, rel=1e-6)
     assert infoj["chain_rate_model_v"] == pytest.approx(22.0 * f - dv - 0.5 * 1.0 * f, rel=1e-6)
+    # ... and mean(C) the split's and the traces' (100 rays in half the pixels) more
+    assert infoj["chain_rate_model_c"] == pytest.approx(info["chain_rate_model_c"] + dc + 50.0, rel=1e-6)
     # one round: the split alone, the rates once more with its effect -- the same maps here
     q1, t1, _, k1, _ = learn_jointly(a, objective="mse", branched=True, rounds=1, **kw)
     assert np.array_equal(k1, kj) and np.array_equal(t1, tj)
+
+
+def test_trace_forms_need_trace_min_hits_and_the_path_tracer_alone_its_own():
+    """The trace forms need trace_min_hits samples with chain light in their
+    window (None: min_hits, 64, as the path tracer alone's form); the path
+    tracer alone keeps min_hits whatever trace_min_hits is. Columns 0-5: 32
+    hits among the records, columns 6-11: 8; one trace halves the variance
+    for 10 rays."""
+    from mpg.chain_rates import learn_rates_traced
+    a = _trace_acc(6, 12)
+    n = a.n
+    for k in (1, 2, 4, 8):
+        getattr(a, f"trace{k}_sum")[...] = 3.0 * n
+        getattr(a, f"trace{k}_sum_sq")[...] = (1.0 + 9.0) * n
+    a.trace_rays[...] = 20.0 * n
+    a.trace_hits[:, :6] = 32.0
+    a.trace_hits[:, 6:] = 8.0
+    kw = dict(radius=0, objective="mse", trace=True, tails=False)
+    q, t, _ = learn_rates_traced(a, **kw)
+    assert not np.any(t) and np.all(q == 0.0)   # the path tracer alone (64 hits) everywhere
+    q, t, _ = learn_rates_traced(a, trace_min_hits=16, **kw)
+    assert np.all(t[:, :6] == 1) and np.all(t[:, 6:] == 0) and np.all(q == 0.0)
+    a.alt_hits[...] = 32.0   # the path tracer alone now below its 64: chain rates where no trace may run
+    q, t, _ = learn_rates_traced(a, trace_min_hits=16, **kw)
+    assert np.all(t[:, :6] == 1) and np.all(q[:, :6] == 0.0)
+    assert np.all(t[:, 6:] == 0) and np.all(q[:, 6:] > 0.0)

@@ -257,9 +257,10 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
     variance the pair gives ((Z_1 - Z_2)^2 / 2). Its excess variance is then
     taken as dv is from the path tracer alone's, at k / 2 of the recorded
     traces' rays added to the cost. A pixel takes the form with the smallest
-    share of F (the same linearised rule); the trace forms need min_hits
-    samples in the window in which the path tracer or a trace found chain
-    light, and chain light that is not negligible. The traces are recorded in
+    share of F (the same linearised rule); the trace forms need
+    trace_min_hits (None: min_hits) samples in the window in which the path
+    tracer or a trace found chain light, and chain light that is not
+    negligible. The traces are recorded in
     one sample of four (acc.trace_n; their cost took a training iteration's
     worth of time when every sample recorded them), and the hits counted are
     theirs. A trace form's cost is k traces' rays and lobes (LOBE_COST) and
@@ -330,7 +331,7 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
         eligible = has & ((_box_blur(finite(acc.alt_hits), radius, total=True) >= min_hits) | negl)
         if trace and float(np.sum(finite(acc.trace_rays))) > 0.0:
             # the guided trace's forms of rate 0 (the traces' rays per sample added)
-            # (recorded in one sample of four, whose hits must reach min_hits.
+            # (recorded in one sample of four, whose hits must reach trace_min_hits.
             # Their rare large values -- g small where the lobes miss part of a
             # small light's image -- are what a short record misses: pool's
             # traced pixels rendered 15x the chains' variance where the record
@@ -470,7 +471,7 @@ BRANCH_RESIDUAL = 1.0 / 24.0
 def _delta_parts(acc: CostAccumulator, objective: str, radius: int) -> tuple[np.ndarray, np.ndarray]:
     """(b, o) per pixel: the weighted variance of the light seen through delta
     scattering only (blurred over the window) and a delta path's cost in
-    samples (1 + the rays a sample traced after delta scattering only)."""
+    rays (1 + the rays a sample traced after delta scattering only)."""
     n = float(acc.n)
     var_d = _sample_variance(acc.delta_sum, acc.delta_sum_sq, n)
     wgt = _weights(_finite(acc.sum) / n, objective, radius)
@@ -509,8 +510,8 @@ def learn_delta_split(acc: CostAccumulator, q: np.ndarray, radius: int = 3, obje
     images in glass and mirrors, glints in bumpy glass) and R the rest. With k
     paths for it, B / k, at (k - 1) o more cost, o = 1 + the rays a sample traced
     after delta scattering only. Minimising F = mean(wV) mean(C), as
-    learn_rates does (C the cost per sample at the learned rates q, w the
-    objective's weight), over each pixel's k gives
+    learn_rates does (C the cost per sample at the learned rates q, or as
+    `means` gives it; w the objective's weight), over each pixel's k gives
 
         k_p = sqrt(w_p B_p mean(C) / (o_p mean(wV)))            (Eq. 3)
 
@@ -578,23 +579,31 @@ def learn_jointly(acc: CostAccumulator, objective: str = "relmse", branched: boo
     weighed against the rates' predicted means (chain_rate_model_v/_c) and
     the rates again with what that split takes from mean(wV) and adds to
     mean(C) (delta_split_effect) -- until the split stops changing, at most
-    `rounds` rounds. radius: all three's window; rate_kw: learn_rates_traced's
-    other arguments."""
+    `rounds` rounds. Each round's maps lower F in the model, but F = mean(wV)
+    mean(C) is not convex along a split, so the joint maps are kept only if
+    their F is no higher than the rates' alone (else those, unsplit:
+    joint_rounds 0). radius: all three's window; rate_kw:
+    learn_rates_traced's other arguments."""
     q, t, info = learn_rates_traced(acc, objective=objective, radius=radius, **rate_kw)
     k = np.ones(acc.chain_m2.shape, dtype=np.float32)
     kinfo: dict = {}
     done = 0
     if not info.get("chain_rate_learned"):
         return q, t, info, k, kinfo
+    alone = (q, t, info)
+    f_alone = info["chain_rate_model_v"] * info["chain_rate_model_c"]
     for done in range(1, rounds + 1):
         k_new, kinfo = learn_delta_split(acc, q, radius=radius, objective=objective, branched=branched,
                                          means=(info["chain_rate_model_v"], info["chain_rate_model_c"]))
-        if done > 1 and np.array_equal(k_new, k):
+        if np.array_equal(k_new, k):
             break
         k = k_new
         dv, dc = delta_split_effect(acc, k, radius=radius, objective=objective, branched=branched)
         q, t, info = learn_rates_traced(acc, objective=objective, radius=radius, v_offset=dv, c_offset=dc,
                                         **rate_kw)
+    if info["chain_rate_model_v"] * info["chain_rate_model_c"] > f_alone:
+        q, t, info = alone
+        k, kinfo, done = np.ones_like(k), {"delta_split_fraction": 0.0, "delta_split_mean": 1.0}, 0
     info["joint_rounds"] = done
     return q, t, info, k, kinfo
 

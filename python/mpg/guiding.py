@@ -184,7 +184,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     if objective not in ("mse", "relmse"):
         raise RenderError(f"chain_rate_objective must be 'mse' or 'relmse', got '{objective}'")
     auto = rate == "auto"   # render() turned any other value into a float or an error
-    # delta_split: "auto" (learned with the rates), or k camera paths per sample
+    # delta_split: "auto" (learned with the rates, together with them under
+    # joint_maps), or k camera paths per sample
     # for the light seen through delta scattering only everywhere (1: off)
     split_given = "delta_split" in params
     split = _split_setting("delta_split", params.pop("delta_split", "auto"), ("auto",))
@@ -446,7 +447,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         rate_kw = dict(q_min=q_min, handoff=handoff, negligible=negligible,
                        trace=learn_trace and params["handoff_guided"] > 0, tails=trace_tails,
                        trace_min_hits=trace_min_hits)
-        joint_k = None
+        joint_k, kinfo = None, {}
         if joint and split == "auto" and costs.n > 0:
             qmap, tmap, rate_info, joint_k, kinfo = learn_jointly(costs, objective=objective,
                                                                   branched=params["delta_branch"] > 0, **rate_kw)
