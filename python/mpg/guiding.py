@@ -69,13 +69,15 @@ LEARN_TRACE = True
 # (docs/results.md, sixteenth session)
 TRACE_TAILS = True
 # The rates, traces and delta split learned together (chain_rates.learn_jointly),
-# and the samples with chain light a guided trace form's window needs (the path
-# tracer alone's form keeps HANDOFF_MIN_HITS, 64): with the two, own MSE at 20 s,
-# 3 seeds, double_slabs 1.24x, sphere 1.20x, ring 1.16x lower, slab 0.95x, pool
-# level; either alone left double_slabs level (docs/results.md, seventeenth
-# session)
-JOINT_MAPS = True
-TRACE_MIN_HITS = 16.0
+# and the samples with chain light a guided trace form's window needs (None: the
+# path tracer alone's HANDOFF_MIN_HITS, 64). With joint_maps and trace_min_hits
+# 16, own MSE at 20 s, 3 seeds: double_slabs 1.24x, sphere 1.20x, ring 1.16x
+# lower, slab 0.95x, pool level, either alone left double_slabs level -- but
+# emitter_size_003 (128^2, 10 s, 6 seeds) lost 2.3x with the two, 1.8x and 2.4x
+# with each alone, at 35 % fewer samples: so both are off by default
+# (docs/results.md, seventeenth session)
+JOINT_MAPS = False
+TRACE_MIN_HITS = None
 # The pixel split's default (learned for MSE) and the cap on its predicted cost
 # per sample (design-notes "Splitting the pixels"; docs/results.md, eleventh session)
 PIXEL_SPLIT = "mse"
