@@ -779,3 +779,24 @@ def test_trace_forms_need_trace_min_hits_and_the_path_tracer_alone_its_own():
     q, t, _ = learn_rates_traced(a, trace_min_hits=16, **kw)
     assert np.all(t[:, :6] == 1) and np.all(q[:, :6] == 0.0)
     assert np.all(t[:, 6:] == 0) and np.all(q[:, 6:] > 0.0)
+
+
+def test_joint_maps_render_end_to_end_and_bad_values_are_refused(scenes_dir):
+    """mpg with joint_maps (and trace_min_hits): the maps are learned
+    together (stat joint_rounds, 0..JOINT_ROUNDS), the image is the same on 1
+    and 2 threads, and bad values are clear errors naming the parameter.
+    Off by default: no joint_rounds."""
+    from mpg.chain_rates import JOINT_ROUNDS
+    from mpg.errors import RenderError
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
+    p = {"type": "mpg", "joint_maps": True, "trace_min_hits": 16}
+    a = mpg.render(sc, integrator=p, spp=32, seed=3, threads=1, progress=False)
+    b = mpg.render(sc, integrator=p, spp=32, seed=3, threads=2, progress=False)
+    assert np.array_equal(a.rgb, b.rgb) and np.isfinite(a.rgb).all()
+    assert a.stats["chain_rate_learned"] and 0 <= a.stats["joint_rounds"] <= JOINT_ROUNDS
+    d = mpg.render(sc, integrator={"type": "mpg"}, spp=32, seed=3, progress=False)
+    assert "joint_rounds" not in d.stats
+    for bad, msg in (({"joint_maps": "maybe"}, "joint_maps"), ({"trace_min_hits": -1}, "trace_min_hits"),
+                     ({"trace_min_hits": "many"}, "trace_min_hits")):
+        with pytest.raises(RenderError, match=msg):
+            mpg.render(sc, integrator=dict({"type": "mpg"}, **bad), spp=4, seed=3, progress=False)
