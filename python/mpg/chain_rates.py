@@ -574,8 +574,9 @@ def learn_jointly(acc: CostAccumulator, objective: str = "relmse", branched: boo
     double_slabs one guided trace at every first separator and two branched
     delta paths everywhere rendered 10.6x below `path` at equal samples per
     pixel, each alone 1.6x and 2.2x (their variances add), yet the learned
-    maps traced 14 % of the pixels and split 2 % (docs/results.md,
-    seventeenth session). So: the rates alone; then, per round, the split
+    maps traced 14 % of the chain pixels and split 2 % of all (docs/results.md,
+    seventeenth session; the two options are off by default there: a tiny
+    light's scene lost 2.3x with them). So: the rates alone; then, per round, the split
     weighed against the rates' predicted means (chain_rate_model_v/_c) and
     the rates again with what that split takes from mean(wV) and adds to
     mean(C) (delta_split_effect) -- until the split stops changing, at most
