@@ -22,14 +22,16 @@ rates choose the guided trace"; docs/results.md, fifteenth session).
         rate-0 forms' second moments of the chain paths as the chains
         sample them (trace<k>_tail) against the records' own (trace<k>_seen),
         summed over the image and over the pixels where each is larger.
-    python bench/trace_diagnostics.py bound double_slabs --spp 64 --seeds 2 --ks 8 32
-        how far below `path` any estimator of the chain light at the first
-        separator can bring the MSE at equal samples per pixel: `path`
-        against the path tracer with k guided traces at every first
-        separator (rate 0 everywhere, a guide from --guide-spp spp at rate
-        1), each at --spp, the scene's own resolution; as k grows the
-        chain part tends to its mean given the camera path, and what
-        remains is the pixel footprint's and the other light's variance.
+    python bench/trace_diagnostics.py bound double_slabs --spp 64 --seeds 2 --ks 32 --delta 8
+        how far below `path` estimates of the chain light at the first
+        separator and of the light seen in the glass can bring the MSE at
+        equal samples per pixel: `path` against the path tracer with k
+        guided traces at every first separator (rate 0 everywhere, a guide
+        from --guide-spp spp at rate 1), alone and with a branched delta
+        split of --delta everywhere (1: none), each at --spp, the scene's
+        own resolution; as k and the split grow both parts tend to their
+        means given the camera path, and what remains is the pixel
+        footprint's and the other light's variance.
         Prints each one's MSE less the reference's floor and its seconds.
     python bench/trace_diagnostics.py lobes pool
         ns per lobe of ChainDistribution::pdf_dir over the largest leaves,

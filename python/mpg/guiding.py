@@ -460,7 +460,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         if not rate_info.get("chain_rate_learned"):
             # too little training (< 2 spp): the training rate throughout
             qmap, tmap, rate_info = None, None, {}
-        if split == "auto" and costs.n > 0 and joint_k is not None and qmap is not None:
+        if joint_k is not None and qmap is not None:   # (learned together above)
             kmap = learned(joint_k, kinfo)
         elif split == "auto" and costs.n > 0:
             kmap = learned(*learn_delta_split(costs, rates(), objective=objective,
