@@ -514,9 +514,15 @@ def test_training_records_the_guided_trace_forms_of_rate_zero(scenes_dir):
     the pair weighted for k and averaged. Each Y_k is an estimate of the same pixel:
     they agree with the path tracer (|z| < 5 on the image and nine regions).
     E[(Y_k - I)^2] + (1/k - 1/2) Var(Z_k), from the pair's (Z_1 - Z_2)^2 / 2,
-    predicts the variance of a render at rate 0 with k traces: within 15 % on
-    the image's summed variance for k = 1 and 8 (~150 000 recorded samples
-    against ~600 000). A guided_trace_map of zeros switches the record off."""
+    predicts the variance of a render at rate 0 with k traces: within 20 % on
+    the image's summed variance for k = 1 and 8, pooled over three pairs of
+    a 4 096-sample training pass and a 4 096-spp render. Both sides are
+    heavy-tailed (the focus): single pairs of 4 096 gave predicted /
+    measured 0.97-1.21, of 16 384 0.98-1.17, and of 1 024 (this test's old
+    form, within 15 % on one pair) 1.01-1.33 -- it failed on an AMD EPYC
+    machine, where Embree's kernels draw other paths from the same seeds;
+    pooled over the three pairs 1.10 (k = 8) and 1.05 (k = 1) there
+    (eighteenth session). A guided_trace_map of zeros switches the record off."""
     from stats_util import run_pass
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
     guide = _trained_guide(sc)
@@ -537,17 +543,22 @@ def test_training_records_the_guided_trace_forms_of_rate_zero(scenes_dir):
     st = r["stats"]
     assert r["rays"].sum() + r["trace_rays"].sum() == st["rays"] + st["shadow_rays"] + st["camera_rays"]
     zero = np.zeros((24, 24), np.float32)
+    nv = 4096
+    passes = [run_pass(sc, "mpg", nv, 19 + 100 * s, params, record_costs=True) for s in range(3)]
     for k in (1, 8):
-        mean = r["sum"] / n
-        ys = r[f"trace{k}_sum"] / nt[..., None]
-        y2 = r[f"trace{k}_sum_sq"] / nt[..., None]
-        mse_y = (y2 - 2 * ys * mean + mean * mean).mean(axis=2)
-        predicted = float(np.sum(mse_y + (1 / k - 1 / 2) * r[f"trace{k}_var"] / nt))
-        img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": k},
-                         spp=n, seed=29, progress=False, chain_rate_map=zero,
-                         guided_trace_map=np.full((24, 24), k, np.float32))
-        measured = float(np.sum(img.variance.mean(axis=2))) * n   # per-sample variance, summed over pixels
-        assert predicted == pytest.approx(measured, rel=0.15), (k, predicted, measured)
+        predicted = measured = 0.0
+        for s, rv in enumerate(passes):
+            mean = rv["sum"] / nv
+            ntv = rv["trace_n"]
+            ys = rv[f"trace{k}_sum"] / ntv[..., None]
+            y2 = rv[f"trace{k}_sum_sq"] / ntv[..., None]
+            mse_y = (y2 - 2 * ys * mean + mean * mean).mean(axis=2)
+            predicted += float(np.sum(mse_y + (1 / k - 1 / 2) * rv[f"trace{k}_var"] / ntv))
+            img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": k},
+                             spp=nv, seed=29 + 100 * s, progress=False, chain_rate_map=zero,
+                             guided_trace_map=np.full((24, 24), k, np.float32))
+            measured += float(np.sum(img.variance.mean(axis=2))) * nv   # per-sample variance, summed over pixels
+        assert predicted == pytest.approx(measured, rel=0.2), (k, predicted, measured)
     off = run_pass(sc, "mpg", 8, 19, params, record_costs=True, guided_trace_map=zero)
     for k in (1, 2, 4, 8):
         assert off[f"trace{k}_var"].sum() == 0
