@@ -12,7 +12,8 @@ JSON, checks them and prints the MSE less the reference's floor per variant.
 
 Each variant is a JSON object of `mpg` parameters ('{}': the defaults).
 Prints MSE, MSE less the reference's floor (docs/results.md, "Metrics"),
-relMSE and spp per run and per variant; needs the scene's reference in the
+relMSE and spp per run and per variant (and the render stats --stats names,
+per run: e.g. chain_rate_model_v chain_rate_model_c, the rates' model); needs the scene's reference in the
 cache (mpg-bench reference). Writes bench/results/ab_params-<scene>-<hash of
 the arguments>.json after every run (or --out FILE), so an interrupted run
 keeps what it has."""
@@ -47,6 +48,8 @@ def main() -> int:
     ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                     help="scene parameter, e.g. res=128 (repeatable)")
     ap.add_argument("--variants", nargs="+", required=True, metavar="JSON")
+    ap.add_argument("--stats", nargs="+", default=[], metavar="KEY",
+                    help="render stats to record and print per run (e.g. chain_rate_model_v spp_rendering)")
     ap.add_argument("--out", help="results file (default bench/results/ab_params-<scene>-<hash>.json)")
     args = ap.parse_args()
     if not args.time > 0:
@@ -111,9 +114,13 @@ def main() -> int:
                 return 1
             rec = {"seed": seed, "spp": int(img.spp), "mse": metrics.mse(img.rgb, ref),
                    "relmse": metrics.relmse(img.rgb, ref)}
+            if args.stats:
+                rec["stats"] = {k: img.stats.get(k) for k in args.stats}
             runs[i].append(rec)
+            extra = "".join(f" {k} {v:.4g}" if isinstance(v, float) else f" {k} {v}"
+                            for k, v in rec.get("stats", {}).items())
             print(f"{args.scene} seed {seed} {json.dumps(variants[i])}: MSE {rec['mse']:.4g} "
-                  f"relMSE {rec['relmse']:.3g} spp {rec['spp']}", flush=True)
+                  f"relMSE {rec['relmse']:.3g} spp {rec['spp']}{extra}", flush=True)
             out_path.write_text(json.dumps(summary(), indent=2))
     for s in summary()["variants"]:
         print(f"== {json.dumps(s['variant'])}: MSE {s['mse']:.4g} (less floor {s['mse_above_floor']:.4g}) "
