@@ -726,9 +726,11 @@ def test_the_rates_and_the_delta_split_learned_together_see_what_the_other_takes
     training's variance (282 + 20 a sample at rate 1/8), is not worth its
     cost either. Together: the split against the rates' 22 (40 x 1e3 > 2 x
     500 x 22) takes 40 (1 - 1/24) from half the pixels, mean(V) falls to
-    2.8, and the trace pays (1/2.8 > 100/1.5e3)."""
-    from mpg.chain_rates import (BRANCH_RESIDUAL, TREE_COST, delta_split_effect, learn_delta_split,
-                                 learn_jointly, learn_rates_traced)
+    2.8, and the trace pays (1/2.8 > 100/1.5e3). With fewer effective
+    samples of that light than min_samples, its variance is not taken away
+    and nothing joint is kept."""
+    from mpg.chain_rates import (BRANCH_RESIDUAL, JOINT_MIN_SAMPLES, TREE_COST, delta_effective_samples,
+                                 delta_split_effect, learn_delta_split, learn_jointly, learn_rates_traced)
     h, w = 6, 12
     glint = np.zeros((h, w))
     glint[:, :6] = 40.0
@@ -737,8 +739,10 @@ def test_the_rates_and_the_delta_split_learned_together_see_what_the_other_takes
     var = np.full((h, w), 2.0) + (1 / 0.125 - 1) * 40.0 + glint
     a.sum_sq = np.repeat(((var * (n - 1) / n) + 9.0)[..., None] * n, 3, axis=2)
     a.alt_sum_sq = np.repeat((2.0 + glint + 9.0)[..., None] * n, 3, axis=2)
-    a.delta_sum = np.full((h, w, 3), 0.25 * n)
-    a.delta_sum_sq = np.repeat(((glint * (n - 1) / n) + 0.0625)[..., None] * n, 3, axis=2)
+    # the light in the glass at mean 3 (as the pixel's; variance 40): an
+    # effective sample count n 9 / (40 (n - 1) / n + 9) = 11.9 in columns 0-5
+    a.delta_sum = np.full((h, w, 3), 3.0 * n)
+    a.delta_sum_sq = np.repeat(((glint * (n - 1) / n) + 9.0)[..., None] * n, 3, axis=2)
     a.delta_rays = np.full((h, w), 499.0 * n)   # o = 500
     for k in (1, 2, 4, 8):   # the traced values: variance 1 in columns 6-11, no gain in 0-5
         getattr(a, f"trace{k}_sum")[...] = 3.0 * n
@@ -764,6 +768,22 @@ def test_the_rates_and_the_delta_split_learned_together_see_what_the_other_takes
     # one round: the split alone, the rates once more with its effect -- the same maps here
     q1, t1, _, k1, _ = learn_jointly(a, objective="mse", branched=True, rounds=1, **kw)
     assert np.array_equal(k1, kj) and np.array_equal(t1, tj)
+    # the split's variance counts in what the rates see taken away only in windows
+    # that carried that light in min_samples effective samples (11.9 here): at 16
+    # the rates see the whole 22 again and trace nothing, the split's cost alone
+    # makes F worse than the rates' alone, and the joint maps are dropped
+    assert JOINT_MIN_SAMPLES <= 11.9 and delta_effective_samples(a, radius=0)[0, 0] == pytest.approx(
+        n * 9.0 / (40.0 * (n - 1) / n + 9.0), rel=1e-6)
+    assert delta_split_effect(a, kj, radius=0, objective="mse", branched=True, min_samples=16)[0] == 0.0
+    q16, t16, info16, k16, _ = learn_jointly(a, objective="mse", branched=True, min_samples=16, **kw)
+    assert np.all(k16 == 1) and not np.any(t16) and info16["joint_rounds"] == 0
+    # a glint seen once (one sample holds the whole sum): one effective sample
+    b = _trace_acc(2, 2)
+    b.delta_sum[...] = 100.0
+    b.delta_sum_sq[...] = 100.0 ** 2
+    assert np.allclose(delta_effective_samples(b, radius=0), 1.0)
+    b.delta_sum[...], b.delta_sum_sq[...] = 0.0, 0.0   # none: 0
+    assert np.all(delta_effective_samples(b, radius=0) == 0.0)
 
 
 def test_trace_forms_need_trace_min_hits_and_the_path_tracer_alone_its_own():
@@ -808,6 +828,13 @@ def test_joint_maps_render_end_to_end_and_bad_values_are_refused(scenes_dir):
     d = mpg.render(sc, integrator={"type": "mpg"}, spp=32, seed=3, progress=False)
     assert "joint_rounds" not in d.stats
     for bad, msg in (({"joint_maps": "maybe"}, "joint_maps"), ({"trace_min_hits": -1}, "trace_min_hits"),
-                     ({"trace_min_hits": "many"}, "trace_min_hits")):
+                     ({"trace_min_hits": "many"}, "trace_min_hits"), ({"trace_min_hits": True}, "trace_min_hits")):
         with pytest.raises(RenderError, match=msg):
             mpg.render(sc, integrator=dict({"type": "mpg"}, **bad), spp=4, seed=3, progress=False)
+    # ignored, and said so: a fixed rate learns no maps, learn_trace off no traces
+    for given, msg in (({"joint_maps": True, "chain_rate": 0.5}, "joint_maps"),
+                       ({"joint_maps": True, "delta_split": 2}, "joint_maps"),
+                       ({"trace_min_hits": 16, "learn_trace": False}, "trace_min_hits")):
+        w = mpg.render(sc, integrator=dict({"type": "mpg"}, **given), spp=4, seed=3, progress=False).stats["warnings"]
+        assert any(msg in x and "ignored" in x for x in w), (given, w)
+    assert not any("ignored" in x for x in a.stats["warnings"])

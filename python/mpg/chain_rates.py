@@ -478,12 +478,25 @@ def _delta_parts(acc: CostAccumulator, objective: str, radius: int) -> tuple[np.
     return _box_blur(wgt * var_d, radius), 1.0 + _finite(acc.delta_rays) / n
 
 
+def delta_effective_samples(acc: CostAccumulator, radius: int = 3) -> np.ndarray:
+    """Per pixel the effective number of training samples that carried the
+    light seen through delta scattering only in the (2 radius + 1)^2 window,
+    (sum x)^2 / sum x^2 over the window's samples (mean over RGB): 1 where a
+    single sample holds it all (a tiny light's image in the glass, seen once),
+    the count of hits where they are alike."""
+    s1 = _box_blur(_finite(acc.delta_sum).mean(axis=2), radius, total=True)
+    s2 = _box_blur(_finite(acc.delta_sum_sq).mean(axis=2), radius, total=True)
+    return np.where(s2 > 0.0, s1 * s1 / np.where(s2 > 0.0, s2, 1.0), 0.0)
+
+
 def delta_split_effect(acc: CostAccumulator, k: np.ndarray, radius: int = 3, objective: str = "relmse",
-                       branched: bool = False) -> tuple[float, float]:
+                       branched: bool = False, min_samples: float = 0.0) -> tuple[float, float]:
     """(dv, dc): what a delta split map k takes from mean(wV) and adds to
     mean(C) (ray units), in learn_delta_split's model: k - 1 branched paths
     leave BRANCH_RESIDUAL / (k - 1) of the light's variance B at TREE_COST o
-    each, k unbranched ones 1 / k of it at o each."""
+    each, k unbranched ones 1 / k of it at o each. min_samples: only pixels
+    whose window carried that light in at least this many effective samples
+    (delta_effective_samples) count in dv; all split pixels count in dc."""
     if acc.n < 2:
         return 0.0, 0.0
     b, o = _delta_parts(acc, objective, radius)
@@ -494,7 +507,8 @@ def delta_split_effect(acc: CostAccumulator, k: np.ndarray, radius: int = 3, obj
         kept, cost = BRANCH_RESIDUAL / km1, TREE_COST * o * km1
     else:
         kept, cost = 1.0 / np.maximum(k, 1.0), o * km1
-    dv = float(np.mean(np.where(split, b * (1.0 - kept), 0.0)))
+    seen = split if min_samples <= 0.0 else split & (delta_effective_samples(acc, radius) >= min_samples)
+    dv = float(np.mean(np.where(seen, b * (1.0 - kept), 0.0)))
     dc = float(np.mean(np.where(split, cost, 0.0)))
     return dv, dc
 
@@ -559,10 +573,20 @@ def learn_delta_split(acc: CostAccumulator, q: np.ndarray, radius: int = 3, obje
 
 # learn_jointly: at most this many rounds of the delta split and the rates.
 JOINT_ROUNDS = 3
+# learn_jointly: the split's variance counts in what the rates see taken away
+# only where the window carried the light in the glass in at least this many
+# effective samples (delta_effective_samples). emitter_size_003's tiny light
+# put its whole dv in windows of 1-4 (one glint of 13 000 in 127 samples):
+# taken away, the rates saw almost no variance left, ran the chains at 1.5x
+# the cost and rendered 1.6x worse (12 seeds); double_slabs' and the
+# sphere's split pixels had medians of 12 and 11 (docs/results.md,
+# eighteenth session).
+JOINT_MIN_SAMPLES = 8.0
 
 
 def learn_jointly(acc: CostAccumulator, objective: str = "relmse", branched: bool = False,
-                  rounds: int = JOINT_ROUNDS, radius: int = 3, **rate_kw) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray, dict]:
+                  rounds: int = JOINT_ROUNDS, radius: int = 3, min_samples: float = JOINT_MIN_SAMPLES,
+                  **rate_kw) -> tuple[np.ndarray, np.ndarray, dict, np.ndarray, dict]:
     """The rates, guided traces and delta split learned together: (q, traces,
     rates' info, delta split k, split's info).
 
@@ -582,8 +606,12 @@ def learn_jointly(acc: CostAccumulator, objective: str = "relmse", branched: boo
     mean(C) (delta_split_effect) -- until the split stops changing, at most
     `rounds` rounds. Each round's maps lower F in the model, but F = mean(wV)
     mean(C) is not convex along a split, so the joint maps are kept only if
-    their F is no higher than the rates' alone (else those, unsplit:
-    joint_rounds 0). radius: all three's window; rate_kw:
+    their F is no higher than that of the maps learned one after the other
+    (the rates alone and learn_delta_split against the training's means,
+    what joint_maps off renders), else those (joint_rounds 0). The split's dv counts only in windows that carried its
+    light in at least min_samples effective samples (delta_effective_samples):
+    a variance made of one or two glints is no ground to re-plan the image's
+    budget on. radius: all three's window; rate_kw:
     learn_rates_traced's other arguments."""
     q, t, info = learn_rates_traced(acc, objective=objective, radius=radius, **rate_kw)
     k = np.ones(acc.chain_m2.shape, dtype=np.float32)
@@ -591,21 +619,29 @@ def learn_jointly(acc: CostAccumulator, objective: str = "relmse", branched: boo
     done = 0
     if not info.get("chain_rate_learned"):
         return q, t, info, k, kinfo
+    # the maps learned one after the other, and their F in the model
+    k_seq, kinfo_seq = learn_delta_split(acc, q, radius=radius, objective=objective, branched=branched)
+    dv, dc = delta_split_effect(acc, k_seq, radius=radius, objective=objective, branched=branched,
+                                min_samples=min_samples)
     alone = (q, t, info)
-    f_alone = info["chain_rate_model_v"] * info["chain_rate_model_c"]
+    f_seq = max(info["chain_rate_model_v"] - dv, 0.0) * (info["chain_rate_model_c"] + dc)
     for done in range(1, rounds + 1):
         k_new, kinfo = learn_delta_split(acc, q, radius=radius, objective=objective, branched=branched,
                                          means=(info["chain_rate_model_v"], info["chain_rate_model_c"]))
         if np.array_equal(k_new, k):
             break
         k = k_new
-        dv, dc = delta_split_effect(acc, k, radius=radius, objective=objective, branched=branched)
+        dv, dc = delta_split_effect(acc, k, radius=radius, objective=objective, branched=branched,
+                                    min_samples=min_samples)
         q, t, info = learn_rates_traced(acc, objective=objective, radius=radius, v_offset=dv, c_offset=dc,
                                         **rate_kw)
-    if info["chain_rate_model_v"] * info["chain_rate_model_c"] > f_alone:
+    # (the predicted cost per sample against the rates' alone)
+    cost_ratio = info["chain_rate_model_c"] / alone[2]["chain_rate_model_c"] if alone[2]["chain_rate_model_c"] > 0 else 1.0
+    if done == 0 or info["chain_rate_model_v"] * info["chain_rate_model_c"] > f_seq:
         q, t, info = alone
-        k, kinfo, done = np.ones_like(k), {"delta_split_fraction": 0.0, "delta_split_mean": 1.0}, 0
+        k, kinfo, done = k_seq, kinfo_seq, 0
     info["joint_rounds"] = done
+    info["joint_cost_ratio"] = float(cost_ratio)
     return q, t, info, k, kinfo
 
 

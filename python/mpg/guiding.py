@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, STEP_COST, CostAccumulator, _sample_variance,
+from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, JOINT_MIN_SAMPLES, STEP_COST, CostAccumulator, _sample_variance,
                              guided_trace_map, learn_delta_split, learn_pixel_split, learn_rates,
-                             learn_jointly, learn_rates_traced)
+                             learn_jointly, learn_rates_traced, delta_split_effect)
 from mpg.errors import RenderError
 
 
@@ -247,17 +247,39 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     joint = _as_bool("joint_maps", params.pop("joint_maps", JOINT_MAPS))
     # trace_min_hits: the samples with chain light a trace form's window needs
     # (chain_rates.learn_rates_traced)
+    asked_hits = "trace_min_hits" in params
     trace_min_hits = params.pop("trace_min_hits", TRACE_MIN_HITS)
     try:
+        if isinstance(trace_min_hits, bool):   # (float(True) would be 1.0)
+            raise TypeError
         trace_min_hits = None if trace_min_hits is None else float(trace_min_hits)
     except (TypeError, ValueError):
         raise RenderError(f"trace_min_hits must be a number, got {trace_min_hits!r}") from None
     if trace_min_hits is not None and not trace_min_hits >= 0.0:
         raise RenderError(f"trace_min_hits must be >= 0, got {trace_min_hits}")
+    # joint_min_samples: the effective samples of the light in the glass a
+    # window needs for its split to count in what the rates see taken away
+    # (chain_rates.learn_jointly)
+    asked_min_samples = "joint_min_samples" in params
+    joint_min_samples = params.pop("joint_min_samples", JOINT_MIN_SAMPLES)
+    try:
+        if isinstance(joint_min_samples, bool):
+            raise TypeError
+        joint_min_samples = float(joint_min_samples)
+    except (TypeError, ValueError):
+        raise RenderError(f"joint_min_samples must be a number, got {joint_min_samples!r}") from None
+    if not joint_min_samples >= 0.0:
+        raise RenderError(f"joint_min_samples must be >= 0, got {joint_min_samples}")
     if learn_trace and not auto:
         if asked_trace:   # (the default's learn_trace simply has nothing to do at a fixed rate)
             warnings.append("learn_trace needs learned rates (chain_rate=auto); ignored")
         learn_trace = False
+    if joint and not (auto and split == "auto"):
+        warnings.append("joint_maps needs learned rates and delta_split=auto; ignored")
+    if asked_min_samples and not (joint and auto and split == "auto"):
+        warnings.append("joint_min_samples applies to joint_maps only; ignored")
+    if asked_hits and not (learn_trace and params["handoff_guided"] > 0):
+        warnings.append("trace_min_hits applies to learned traces only (learn_trace, handoff_guided > 0); ignored")
     params["step_halvings"] = -1 if auto_halvings else int(halvings)
     init = str(params.pop("init", "surface"))
     n_photons = int(params.pop("photons", 200_000))
@@ -452,6 +474,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         joint_k, kinfo = None, {}
         if joint and split == "auto" and costs.n > 0:
             qmap, tmap, rate_info, joint_k, kinfo = learn_jointly(costs, objective=objective,
+                                                                  min_samples=joint_min_samples,
                                                                   branched=params["delta_branch"] > 0, **rate_kw)
         else:
             qmap, tmap, rate_info = learn_rates_traced(costs, objective=objective, **rate_kw)
@@ -465,6 +488,13 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         elif split == "auto" and costs.n > 0:
             kmap = learned(*learn_delta_split(costs, rates(), objective=objective,
                                               branched=params["delta_branch"] > 0))
+        if kmap is not None and rate_info.get("chain_rate_learned"):
+            # the split's effect in the model (delta_split_effect): with the
+            # rates' chain_rate_model_v/_c, the model's F of the maps is
+            # (v - dv)(c + dc), or v c where they were learned together
+            # (joint_rounds > 0: v and c hold it already)
+            dv, dc = delta_split_effect(costs, kmap, objective=objective, branched=params["delta_branch"] > 0)
+            rate_info.update(delta_split_model_dv=dv, delta_split_model_dc=dc)
     if isinstance(split, int) and split > 1:
         kmap = uniform(split)
         rate_info.update(delta_split_fraction=1.0, delta_split_mean=float(split))

@@ -31,7 +31,7 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "chain_handoff_negligible",
                 "delta_split", "pixel_split", "pixel_split_max_cost", "limit_in_training", "known_types",
                 "handoff_guided", "learn_trace", "trace_tails", "joint_maps",
-                "trace_min_hits"}
+                "trace_min_hits", "joint_min_samples"}
 BOOL_PARAMS = {"hide_emitters", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "mis_rate", "chain_handoff", "limit_in_training", "known_types",
                "learn_trace", "trace_tails", "joint_maps"}
