@@ -116,6 +116,10 @@ def main() -> int:
                    "relmse": metrics.relmse(img.rgb, ref)}
             if args.stats:
                 rec["stats"] = {k: img.stats.get(k) for k in args.stats}
+                missing = [k for k in args.stats if k not in img.stats]
+                if missing:
+                    print(f"ab_params: no stat {', '.join(missing)} in this render (recorded as null)",
+                          file=sys.stderr)
             runs[i].append(rec)
             extra = "".join(f" {k} {v:.4g}" if isinstance(v, float) else f" {k} {v}"
                             for k, v in rec.get("stats", {}).items())

@@ -771,12 +771,25 @@ def test_the_rates_and_the_delta_split_learned_together_see_what_the_other_takes
     # the split's variance counts in what the rates see taken away only in windows
     # that carried that light in min_samples effective samples (11.9 here): at 16
     # the rates see the whole 22 again and trace nothing, the split's cost alone
-    # makes F worse than the rates' alone, and the joint maps are dropped
+    # makes F worse than the maps learned one after the other (here the rates
+    # alone, unsplit: k_alone is 1), and the joint maps are dropped
     assert JOINT_MIN_SAMPLES <= 11.9 and delta_effective_samples(a, radius=0)[0, 0] == pytest.approx(
         n * 9.0 / (40.0 * (n - 1) / n + 9.0), rel=1e-6)
     assert delta_split_effect(a, kj, radius=0, objective="mse", branched=True, min_samples=16)[0] == 0.0
     q16, t16, info16, k16, _ = learn_jointly(a, objective="mse", branched=True, min_samples=16, **kw)
     assert np.all(k16 == 1) and not np.any(t16) and info16["joint_rounds"] == 0
+    # the fallback is what joint_maps off renders, a split included: with a
+    # glint 100x brighter the split learned one after the other splits columns
+    # 0-5, and without joint rounds (rounds 0) that split comes back
+    more = 99.0 * np.repeat((glint[:, :6] * (n - 1))[..., None], 3, axis=2)   # variance 40 -> 4 000
+    a.delta_sum_sq[:, :6] += more
+    a.sum_sq[:, :6] += more
+    q_a, t_a, _ = learn_rates_traced(a, objective="mse", **kw)
+    k_seq, kinfo_seq = learn_delta_split(a, q_a, radius=0, objective="mse", branched=True)
+    assert np.all(k_seq[:, :6] == 2) and np.all(k_seq[:, 6:] == 1)
+    q0, t0, info0, k0, kinfo0 = learn_jointly(a, objective="mse", branched=True, rounds=0, **kw)
+    assert np.array_equal(k0, k_seq) and kinfo0 == kinfo_seq and info0["joint_rounds"] == 0
+    assert np.array_equal(q0, q_a) and np.array_equal(t0, t_a) and info0["joint_cost_ratio"] == 1.0
     # a glint seen once (one sample holds the whole sum): one effective sample
     b = _trace_acc(2, 2)
     b.delta_sum[...] = 100.0
@@ -815,8 +828,9 @@ def test_trace_forms_need_trace_min_hits_and_the_path_tracer_alone_its_own():
 def test_joint_maps_render_end_to_end_and_bad_values_are_refused(scenes_dir):
     """mpg with joint_maps (and trace_min_hits): the maps are learned
     together (stat joint_rounds, 0..JOINT_ROUNDS), the image is the same on 1
-    and 2 threads, and bad values are clear errors naming the parameter.
-    Off by default: no joint_rounds."""
+    and 2 threads, and bad values are clear errors naming the parameter;
+    given where they do nothing, joint_maps, joint_min_samples and
+    trace_min_hits are said to be ignored. Off by default: no joint_rounds."""
     from mpg.chain_rates import JOINT_ROUNDS
     from mpg.errors import RenderError
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
@@ -828,13 +842,16 @@ def test_joint_maps_render_end_to_end_and_bad_values_are_refused(scenes_dir):
     d = mpg.render(sc, integrator={"type": "mpg"}, spp=32, seed=3, progress=False)
     assert "joint_rounds" not in d.stats
     for bad, msg in (({"joint_maps": "maybe"}, "joint_maps"), ({"trace_min_hits": -1}, "trace_min_hits"),
-                     ({"trace_min_hits": "many"}, "trace_min_hits"), ({"trace_min_hits": True}, "trace_min_hits")):
+                     ({"trace_min_hits": "many"}, "trace_min_hits"), ({"trace_min_hits": True}, "trace_min_hits"),
+                     ({"joint_min_samples": -1}, "joint_min_samples"), ({"joint_min_samples": "x"}, "joint_min_samples"),
+                     ({"joint_min_samples": True}, "joint_min_samples")):
         with pytest.raises(RenderError, match=msg):
             mpg.render(sc, integrator=dict({"type": "mpg"}, **bad), spp=4, seed=3, progress=False)
     # ignored, and said so: a fixed rate learns no maps, learn_trace off no traces
     for given, msg in (({"joint_maps": True, "chain_rate": 0.5}, "joint_maps"),
                        ({"joint_maps": True, "delta_split": 2}, "joint_maps"),
-                       ({"trace_min_hits": 16, "learn_trace": False}, "trace_min_hits")):
+                       ({"trace_min_hits": 16, "learn_trace": False}, "trace_min_hits"),
+                       ({"joint_min_samples": 4}, "joint_min_samples")):
         w = mpg.render(sc, integrator=dict({"type": "mpg"}, **given), spp=4, seed=3, progress=False).stats["warnings"]
         assert any(msg in x and "ignored" in x for x in w), (given, w)
     assert not any("ignored" in x for x in a.stats["warnings"])

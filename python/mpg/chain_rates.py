@@ -298,7 +298,8 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
     wgt = _weights(mean, objective, radius)
     m2 = m2_raw * wgt
     # V1 = V(q_t) - (1/q_t - 1) M: only its image mean enters Eq. (1)
-    v1_mean = max(float(np.mean(wgt * var_t - (1.0 / q_t - 1.0) * m2)) - v_offset, 0.0)
+    v1_raw = float(np.mean(wgt * var_t - (1.0 / q_t - 1.0) * m2))
+    v1_mean = max(v1_raw - v_offset, 0.0)
     m2_b = _box_blur(m2, radius)
     c1_b = _box_blur(c1, radius)
     has = c1_b > 0.0   # chain work here (M = 0: all cost, no light -> q_min)
@@ -428,6 +429,8 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
     m_tot, c_tot = float(np.sum(m2_raw)), float(np.sum(c1))
     info.update(
         chain_rate_model_v=v_model, chain_rate_model_c=c_model,
+        # (V1's image mean before the offset: learn_jointly's model of other splits)
+        chain_rate_model_v1=v1_raw,
         chain_rate_m_scale=float(np.sum(np.where(on, wgt * m2_raw / qs, 0.0))) / m_tot if m_tot > 0 else 0.0,
         # ... and the path tracer's shares of shared paths (no rate; none at rate 0)
         chain_rate_w_scale=float(np.sum(np.where(on, wgt * m2_raw, 0.0))) / m_tot if m_tot > 0 else 0.0,
@@ -481,12 +484,17 @@ def _delta_parts(acc: CostAccumulator, objective: str, radius: int) -> tuple[np.
 def delta_effective_samples(acc: CostAccumulator, radius: int = 3) -> np.ndarray:
     """Per pixel the effective number of training samples that carried the
     light seen through delta scattering only in the (2 radius + 1)^2 window,
-    (sum x)^2 / sum x^2 over the window's samples (mean over RGB): 1 where a
+    (sum x)^2 / sum x^2 over the window's samples (per channel, weighed by
+    the channels' sums): 1 where a
     single sample holds it all (a tiny light's image in the glass, seen once),
     the count of hits where they are alike."""
-    s1 = _box_blur(_finite(acc.delta_sum).mean(axis=2), radius, total=True)
-    s2 = _box_blur(_finite(acc.delta_sum_sq).mean(axis=2), radius, total=True)
-    return np.where(s2 > 0.0, s1 * s1 / np.where(s2 > 0.0, s2, 1.0), 0.0)
+    s1 = np.stack([_box_blur(_finite(acc.delta_sum)[..., c], radius, total=True) for c in range(3)], axis=2)
+    s2 = np.stack([_box_blur(_finite(acc.delta_sum_sq)[..., c], radius, total=True) for c in range(3)], axis=2)
+    n_c = np.where(s2 > 0.0, s1 * s1 / np.where(s2 > 0.0, s2, 1.0), 0.0)
+    # per channel, then weighted by each channel's sum (a coloured light's dark
+    # channels do not count it down)
+    w = np.sum(s1, axis=2)
+    return np.where(w > 0.0, np.sum(n_c * s1, axis=2) / np.where(w > 0.0, w, 1.0), 0.0)
 
 
 def delta_split_effect(acc: CostAccumulator, k: np.ndarray, radius: int = 3, objective: str = "relmse",
@@ -608,7 +616,8 @@ def learn_jointly(acc: CostAccumulator, objective: str = "relmse", branched: boo
     mean(C) is not convex along a split, so the joint maps are kept only if
     their F is no higher than that of the maps learned one after the other
     (the rates alone and learn_delta_split against the training's means,
-    what joint_maps off renders), else those (joint_rounds 0). The split's dv counts only in windows that carried its
+    what joint_maps off renders), else those (joint_rounds 0; also when
+    the first round splits nothing). The split's dv counts only in windows that carried its
     light in at least min_samples effective samples (delta_effective_samples):
     a variance made of one or two glints is no ground to re-plan the image's
     budget on. radius: all three's window; rate_kw:
@@ -624,7 +633,14 @@ def learn_jointly(acc: CostAccumulator, objective: str = "relmse", branched: boo
     dv, dc = delta_split_effect(acc, k_seq, radius=radius, objective=objective, branched=branched,
                                 min_samples=min_samples)
     alone = (q, t, info)
-    f_seq = max(info["chain_rate_model_v"] - dv, 0.0) * (info["chain_rate_model_c"] + dc)
+    # (as learn_rates_traced's model with that split's offsets: V1 less dv, at
+    # least 0, then the forms' and rates' terms the rates alone added)
+    v1 = info["chain_rate_model_v1"]
+    v_seq = max(v1 - dv, 0.0) + info["chain_rate_model_v"] - max(v1, 0.0)
+    c_seq = info["chain_rate_model_c"] + dc
+
+    def model_f(v, c):
+        return v * c if v > 0.0 and c > 0.0 else np.inf
     for done in range(1, rounds + 1):
         k_new, kinfo = learn_delta_split(acc, q, radius=radius, objective=objective, branched=branched,
                                          means=(info["chain_rate_model_v"], info["chain_rate_model_c"]))
@@ -635,13 +651,18 @@ def learn_jointly(acc: CostAccumulator, objective: str = "relmse", branched: boo
                                     min_samples=min_samples)
         q, t, info = learn_rates_traced(acc, objective=objective, radius=radius, v_offset=dv, c_offset=dc,
                                         **rate_kw)
-    # (the predicted cost per sample against the rates' alone)
-    cost_ratio = info["chain_rate_model_c"] / alone[2]["chain_rate_model_c"] if alone[2]["chain_rate_model_c"] > 0 else 1.0
-    if done == 0 or info["chain_rate_model_v"] * info["chain_rate_model_c"] > f_seq:
+    # kept if a split was learned together (round 1 splitting nothing leaves
+    # the rates alone, unsplit: not what joint_maps off renders) and the
+    # model's F is no higher than the maps' learned one after the other
+    if (done == 0 or not np.any(k > 1.0) or
+            model_f(info["chain_rate_model_v"], info["chain_rate_model_c"]) > model_f(v_seq, c_seq)):
         q, t, info = alone
         k, kinfo, done = k_seq, kinfo_seq, 0
+        info = dict(info, joint_cost_ratio=1.0)
+    else:   # (the kept maps' predicted cost per sample against the rates' alone)
+        c_alone = alone[2]["chain_rate_model_c"]
+        info["joint_cost_ratio"] = float(info["chain_rate_model_c"] / c_alone) if c_alone > 0 else 1.0
     info["joint_rounds"] = done
-    info["joint_cost_ratio"] = float(cost_ratio)
     return q, t, info, k, kinfo
 
 
