@@ -97,6 +97,20 @@ LIMIT_MARGIN = 0.05
 HALVING_LIMITS = range(11)   # the limits the core counts (kHalvingSlots - 1)
 
 
+def _count_param(name: str, v) -> float:
+    """A parameter that is a count of samples: a number >= 0 (not a boolean:
+    float(True) would be 1), else a RenderError naming it."""
+    try:
+        if isinstance(v, (bool, np.bool_)):
+            raise TypeError
+        x = float(v)
+    except (TypeError, ValueError):
+        raise RenderError(f"{name} must be a number, got {v!r}") from None
+    if not x >= 0.0:
+        raise RenderError(f"{name} must be >= 0, got {x}")
+    return x
+
+
 def choose_step_halvings(stats: dict, n: int, variance: float, work: float, m_scale: float,
                          s_scale: float, w_scale: float = 1.0,
                          margin: float = LIMIT_MARGIN) -> tuple[int, dict]:
@@ -252,27 +266,13 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # (chain_rates.learn_rates_traced)
     asked_hits = "trace_min_hits" in params
     trace_min_hits = params.pop("trace_min_hits", TRACE_MIN_HITS)
-    try:
-        if isinstance(trace_min_hits, (bool, np.bool_)):   # (float(True) would be 1.0)
-            raise TypeError
-        trace_min_hits = None if trace_min_hits is None else float(trace_min_hits)
-    except (TypeError, ValueError):
-        raise RenderError(f"trace_min_hits must be a number, got {trace_min_hits!r}") from None
-    if trace_min_hits is not None and not trace_min_hits >= 0.0:
-        raise RenderError(f"trace_min_hits must be >= 0, got {trace_min_hits}")
+    trace_min_hits = None if trace_min_hits is None else _count_param("trace_min_hits", trace_min_hits)
     # joint_min_samples: the effective samples of the light in the glass a
     # window needs for its split to count in what the rates see taken away
     # (chain_rates.learn_jointly)
     asked_min_samples = "joint_min_samples" in params
     joint_min_samples = params.pop("joint_min_samples", JOINT_MIN_SAMPLES)
-    try:
-        if isinstance(joint_min_samples, (bool, np.bool_)):
-            raise TypeError
-        joint_min_samples = float(joint_min_samples)
-    except (TypeError, ValueError):
-        raise RenderError(f"joint_min_samples must be a number, got {joint_min_samples!r}") from None
-    if not joint_min_samples >= 0.0:
-        raise RenderError(f"joint_min_samples must be >= 0, got {joint_min_samples}")
+    joint_min_samples = _count_param("joint_min_samples", joint_min_samples)
     if learn_trace and not auto:
         if asked_trace:   # (the default's learn_trace simply has nothing to do at a fixed rate)
             warnings.append("learn_trace needs learned rates (chain_rate=auto); ignored")
