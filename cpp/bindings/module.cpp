@@ -179,6 +179,11 @@ py::dict pass_to_dict(PassResult& r) {
     put("delta_sum", r.delta_sum, rgb);
     put("delta_sum_sq", r.delta_sum_sq, rgb);
   }
+  if (!r.class_sum.empty()) {   // PassConfig::record_classes
+    const std::vector<ssize_t> cls = {r.height, r.width, Stats::kClasses};
+    put("class_sum", r.class_sum, cls);
+    put("class_sum_sq", r.class_sum_sq, cls);
+  }
   auto st = r.stats.to_map();
   for (size_t i = 1; i < r.stats.walk_failures.size(); ++i)
     st[std::string("walk_fail_") + walk_failure_name(WalkFailure(i))] = double(r.stats.walk_failures[i]);
@@ -670,11 +675,12 @@ PYBIND11_MODULE(_core, m) {
       .def(py::init([](std::shared_ptr<Scene> scene, std::shared_ptr<Integrator> integ, int spp, uint64_t seed,
                        uint64_t pass, int threads, py::object chain_rate_map, bool record_costs,
                        py::object delta_split_map, py::object pixel_split_map, bool stratify,
-                       uint64_t sample_offset, py::object guided_trace_map) {
+                       uint64_t sample_offset, py::object guided_trace_map, bool record_classes) {
         if (!scene->committed()) throw std::runtime_error("scene not committed");
         if (spp < 1) throw std::invalid_argument("spp must be >= 1");
         PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
         cfg.record_costs = record_costs;
+        cfg.record_classes = record_classes;
         cfg.stratify = stratify;
         cfg.sample_offset = sample_offset;
         if (!chain_rate_map.is_none()) {
@@ -718,7 +724,8 @@ PYBIND11_MODULE(_core, m) {
       }), py::arg("scene"), py::arg("integrator"), py::arg("spp"), py::arg("seed") = 0, py::arg("pass_index") = 0,
          py::arg("threads") = 0, py::arg("chain_rate_map") = py::none(), py::arg("record_costs") = false,
          py::arg("delta_split_map") = py::none(), py::arg("pixel_split_map") = py::none(),
-         py::arg("stratify") = false, py::arg("sample_offset") = 0, py::arg("guided_trace_map") = py::none())
+         py::arg("stratify") = false, py::arg("sample_offset") = 0, py::arg("guided_trace_map") = py::none(),
+         py::arg("record_classes") = false)
       .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
       .def("cancel", &RenderJob::cancel)
       .def_property_readonly("progress", &RenderJob::progress)

@@ -133,6 +133,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
           trace_alt_hit(si, beta * Le, w);
           if (w > 0.f) {
             L += beta * Le * w;
+            st.add_class(Stats::kClassShared, beta * Le * w);
             st.owned_shared++;
           } else {
             st.owned_dropped++;
@@ -146,11 +147,15 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
           double b = 0.0, g = 0.0;
           const bool shared = chains_->guided_trace_densities(sep_si, sep_ctx, sep_depth, max_depth, sep_wo,
                                                               chain_si.data(), tau, si, st, b, g);
-          L += beta * Le * ChainEstimator::guided_trace_pt_weight(shared, b, g, trace_k);
+          const Color v = beta * Le * ChainEstimator::guided_trace_pt_weight(shared, b, g, trace_k);
+          L += v;
+          st.add_class(Stats::kClassTraced, v);
         }
       } else if (!is_black(Le)) {
         const float w = prev_delta ? 1.f : power_heuristic(prev_pdf, scene.pdf_emitter_hit(prev_p, si));
         add(beta * Le * w);
+        if (chain_ok && !tau.empty())
+          st.add_class(st.pixel_chain_rate == 0.f ? Stats::kClassHanded : Stats::kClassUnguided, beta * Le * w);
         // (a chain path here has w = 1: its last vertex is a chain vertex)
         if (prev_delta) trace_alt_hit(si, beta * Le, w);
       }
@@ -196,13 +201,17 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       const float q = chains_->rate_at(st);
       if (q <= 0.f) {
         st.chain_handed++;
-        if (seps == 0 && trace_k > 0 && chains_->guided_trace_on())
-          L += beta * chains_->guided_trace(si, ctx, depth, max_depth, trace_k, rng, st);
+        if (seps == 0 && trace_k > 0 && chains_->guided_trace_on()) {
+          const Color v = beta * chains_->guided_trace(si, ctx, depth, max_depth, trace_k, rng, st);
+          L += v;
+          st.add_class(Stats::kClassTraced, v);
+        }
       } else if (q >= 1.f || rng.next_float() < q) {
         ChainEstimator::PathDensities dens;
         dens.want_g = seps == 0;
         const Color X = beta * chains_->estimate(si, ctx, depth, max_depth, rng, st, beta, trace_alt ? &dens : nullptr);
         L += X * (1.f / q);
+        st.add_class(Stats::kClassChain, X * (1.f / q));
         if (dens.ok)
           tail_add(X * (1.f / q), beta * dens.unit, dens.b, dens.g, chain_survival(beta, eta, depth, dens));
         st.sample_alt_delta -= X * (1.f / q);

@@ -48,6 +48,12 @@ void RenderJob::run() {
   result_.sum.assign(size_t(W) * H * 3, 0.0);
   result_.sum_sq.assign(size_t(W) * H * 3, 0.0);
   const bool costs = cfg_.record_costs;
+  const bool classes = cfg_.record_classes;
+  constexpr int NC = Stats::kClasses;
+  if (classes) {
+    result_.class_sum.assign(size_t(W) * H * NC, 0.0);
+    result_.class_sum_sq.assign(size_t(W) * H * NC, 0.0);
+  }
   if (costs) {
     result_.chain_m2.assign(size_t(W) * H, 0.0);
     result_.chain_steps.assign(size_t(W) * H, 0.0);
@@ -124,6 +130,8 @@ void RenderJob::run() {
           const uint64_t shift = mix64(shift_key ^ pixel);  // from the seed and pixel only
           double s[3] = {0, 0, 0}, s2[3] = {0, 0, 0}, a[3] = {0, 0, 0}, a2[3] = {0, 0, 0}, hits = 0;
           double ds[3] = {0, 0, 0}, ds2[3] = {0, 0, 0};
+          double cs[NC] = {}, cs2[NC] = {};   // (record_classes)
+          st.record_classes = classes;
           double ts[Stats::kTraceKs][3] = {}, ts2[Stats::kTraceKs][3] = {}, tvar[Stats::kTraceKs] = {}, thits = 0;
           double tn = 0;   // samples that recorded the traces
           double ttail[Stats::kTraceKs + 1] = {}, tseen[Stats::kTraceKs + 1] = {}, tchain[3] = {};
@@ -152,6 +160,7 @@ void RenderJob::run() {
             // drawn one after the other from the sample's own random stream
             // (kpix = 1: the plain sample, bit for bit).
             Color L(0.f);
+            Color cls[NC] = {};   // (record_classes) the sample's value by class
             for (int sub = 0; sub < kpix; ++sub) {
               Vec3 o, d;
               float tmin, tmax;
@@ -167,7 +176,14 @@ void RenderJob::run() {
               st.sample_chain_part = Color(0.f);
               for (Color& c : st.sample_seen_P) c = Color(0.f);
               st.sample_delta_L = Color(0.f);
+              for (Color& c : st.sample_class) c = Color(0.f);
               Color Ls = integrator_->Li(scene, o, d, tmin, tmax, rng, st);
+              if (classes) {
+                for (int c = 0; c < NC; ++c) cls[c] += st.sample_class[c];
+                // the light seen through delta scattering only: the path's own,
+                // or the split's mean below
+                if (ksplit <= 1) cls[Stats::kClassDelta] += st.sample_delta_L;
+              }
               if (ksplit > 1) {
                 // The light seen through delta scattering only, left out of Ls:
                 // the mean of this path's and k - 1 more camera paths' (each an
@@ -184,6 +200,7 @@ void RenderJob::run() {
                   D += integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st);
                 }
                 Ls += D * (1.f / float(branched ? ksplit - 1 : ksplit));
+                if (classes) cls[Stats::kClassDelta] += D * (1.f / float(branched ? ksplit - 1 : ksplit));
               }
               L += Ls;
               if (sub > 0) st.pixel_split_samples++;
@@ -203,6 +220,25 @@ void RenderJob::run() {
             for (int c = 0; c < 3; ++c) {
               s[c] += L[c];
               s2[c] += double(L[c]) * L[c];
+            }
+            if (classes && ok) {
+              // the rest: what no class above holds (NEE, emitters seen after
+              // a separator without chains, ...); a rejected sample counts 0
+              Color rest = L;
+              for (int c = 0; c < NC; ++c) {
+                if (c != Stats::kClassOther) {
+                  cls[c] *= 1.f / float(kpix);
+                  rest -= cls[c];
+                }
+              }
+              cls[Stats::kClassOther] = rest;
+              for (int c = 0; c < NC; ++c) {
+                const double v = (double(cls[c].x) + cls[c].y + cls[c].z) / 3.0;
+                if (std::isfinite(v)) {
+                  cs[c] += v;
+                  cs2[c] += v * v;
+                }
+              }
             }
             if (costs) {
               // The path tracer alone; a rejected sample (L = 0) counts 0 here too.
@@ -276,6 +312,13 @@ void RenderJob::run() {
           for (int c = 0; c < 3; ++c) {
             result_.sum[i + c] = s[c];
             result_.sum_sq[i + c] = s2[c];
+          }
+          if (classes) {
+            const size_t j = (size_t(y) * W + x) * NC;
+            for (int c = 0; c < NC; ++c) {
+              result_.class_sum[j + c] = cs[c];
+              result_.class_sum_sq[j + c] = cs2[c];
+            }
           }
           if (costs) {
             const size_t j = size_t(y) * W + x;

@@ -33,6 +33,10 @@ struct PassResult {
   // light seen through delta scattering only (Stats::sample_delta_L) and of
   // its squares, for the variance the delta split divides.
   std::vector<double> chain_m2, chain_steps, walk_steps, rays, alt_sum, alt_sum_sq, alt_hits, delta_rays;
+  // With PassConfig::record_classes (height x width x Stats::kClasses): per
+  // pixel the sums over its samples of each class's part of the sample value
+  // (mean over RGB; Stats::Class) and of its squares
+  std::vector<double> class_sum, class_sum_sq;
   // ... trace_sum[i] / trace_sum_sq[i] (height x width x 3): the same samples'
   // values at rate 0 with k = 2^i guided traces formed from two recorded ones
   // (Stats::record_trace; the path tracer alone's values where none ran), trace_var[i] (height
@@ -82,6 +86,9 @@ struct PassConfig {
   // (record_costs) 0 also switches off the record of the trace's forms.
   std::shared_ptr<const std::vector<float>> guided_trace_map;
   bool record_costs = false;
+  // Per pixel the sums and squares (mean over RGB) of each sample's value
+  // split by where it entered (Stats::kClasses; PassResult::class_sum)
+  bool record_classes = false;
   // Pixel positions from a per-pixel randomly shifted Sobol (0,2)-sequence
   // (core/rng.h shifted_sobol_2d) instead of independent random numbers; the
   // scene's sampler stratified/multijitter/ldsampler/... asks for it. Point

@@ -53,6 +53,22 @@ struct Stats {
   // RGB): an unbiased estimate of the second moment the roulette multiplies by
   // (1/q - 1) (design-notes "Chain rates per pixel").
   float pixel_chain_rate = -1.f;
+  // With PassConfig::record_classes (set by the render worker): the camera
+  // sample's value split by where it entered (reset per camera sample): chain
+  // estimates (X / q), the path tracer's shares of shared chain paths, the
+  // handed-off pixels' traced chain light (the guided traces and the path
+  // tracer's weights against them), chain paths the path tracer kept whole in
+  // pixels of rate 0 (untraced), and elsewhere (paths the estimator does not
+  // take: an inactive leaf, a type the leaf never saw, not owned); the worker
+  // adds the light seen through delta scattering only and the rest
+  // (bench/error_classes.py)
+  static constexpr int kClasses = 7;
+  enum Class { kClassChain = 0, kClassShared, kClassTraced, kClassHanded, kClassUnguided, kClassDelta, kClassOther };
+  bool record_classes = false;
+  Color sample_class[kClasses] = {};
+  void add_class(int c, const Color& v) {
+    if (record_classes) sample_class[c] += v;
+  }
   // PassConfig::guided_trace_map at the pixel: its count of guided traces in
   // rate-0 pixels (-1: no map, the integrator's handoff_guided)
   int pixel_trace_k = -1;

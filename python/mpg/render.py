@@ -20,6 +20,9 @@ from mpg.scene.desc import IntegratorDesc, SceneDesc
 # Integrators implemented by the core, and the papers' names that map onto
 # them until their own implementation lands (kept as hints, with a warning).
 IMPLEMENTED = {"path", "sms", "sms_star", "mpg"}
+# Image.class_sum's classes in order (Stats::Class; render(record_classes=True))
+CLASS_NAMES = ("chain", "shared", "traced", "handed", "unguided", "delta", "other")
+
 PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters", "camera_delta", "delta_branch"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
                 "threshold", "max_iterations", "min_step", "step_halvings", "form", "glossy_threshold",
@@ -256,6 +259,7 @@ def render(
     pixel_split_map: np.ndarray | None = None,
     sampler: str | None = None,
     guided_trace_map: np.ndarray | None = None,
+    record_classes: bool = False,
 ) -> Image:
     """Render `scene` and return an Image.
 
@@ -284,6 +288,13 @@ def render(
       correlated, so the image's `variance` channel (from the samples' spread)
       then usually over-estimates the variance of the pixel means where the
       positions matter (not guaranteed: design-notes).
+    record_classes: also sum per pixel each sample's value split by where it
+      entered (CLASS_NAMES: chain estimates, the path tracer's shares of shared
+      chain paths, handed-off pixels' traced chain light, chain paths the path
+      tracer kept whole at rate 0 and elsewhere (those the estimator does not
+      take), light seen through delta scattering only, the rest;
+      mean over RGB) and its squares: Image.class_sum / class_sum_sq (crop
+      height x width x classes; bench/error_classes.py).
     """
     from mpg import _core
 
@@ -319,6 +330,7 @@ def render(
     h, w = int(cam.crop[3]), int(cam.crop[2])
     acc = np.zeros((h, w, 3))
     acc2 = np.zeros((h, w, 3))
+    cls_sum = cls_sum2 = None   # (record_classes)
     stats: dict[str, float] = {}
     done = 0
     passes = 0
@@ -369,7 +381,7 @@ def render(
                                       delta_split_map=delta_split_map,
                                       pixel_split_map=pixel_split_map,
                                       stratify=sampler == "stratified", sample_offset=done,
-                                      guided_trace_map=guided_trace_map)
+                                      guided_trace_map=guided_trace_map, record_classes=record_classes)
             except ValueError as e:   # a bad chain_rate_map (shape, values)
                 raise RenderError(str(e)) from None
             cancelled_by_time = False
@@ -403,6 +415,9 @@ def render(
                 break
             acc += r["sum"]
             acc2 += r["sum_sq"]
+            if record_classes:
+                cls_sum = r["class_sum"] if cls_sum is None else cls_sum + r["class_sum"]
+                cls_sum2 = r["class_sum_sq"] if cls_sum2 is None else cls_sum2 + r["class_sum_sq"]
             rs = r["stats"]
             if rs.get("max_chain_value", 0.0) > stats.get("max_chain_value", 0.0):
                 # the largest single chain estimate and its factors (K, G, P(n), ...)
@@ -449,5 +464,8 @@ def render(
         **{k: (float(v) if k.startswith(("max_chain_", "chain_m2", "pt_shared_m2", "limit_")) else int(v))
            for k, v in stats.items()},
     }
-    return Image(rgb=mean.astype(np.float32), variance=var.astype(np.float32), spp=done,
-                 stats=out_stats)
+    img = Image(rgb=mean.astype(np.float32), variance=var.astype(np.float32), spp=done,
+                stats=out_stats)
+    if record_classes:
+        img.class_sum, img.class_sum_sq = cls_sum, cls_sum2   # (None when no pass finished)
+    return img

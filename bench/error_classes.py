@@ -1,0 +1,136 @@
+"""Where an image's variance comes from, by the kind of path that brought the
+light: one render with `record_classes` (mpg.render), each sample's value
+split into chain estimates (X / q), the path tracer's shares of shared chain
+paths (its balance weight, Bernoulli rounds K'), handed-off pixels' traced
+chain light (guided traces and the path tracer's weights against them),
+chain paths the path tracer kept whole in pixels of rate 0 ("handed":
+untraced) and elsewhere ("unguided": an inactive leaf, a type the leaf never
+saw, a path the estimator does not own), the light seen through delta
+scattering only (glints in the glass, with the delta split's mean), and the
+rest (NEE, indirect light).
+
+Per class: the image mean of the variance of each pixel's mean that the
+class alone would have (its share of the sum over classes; the classes'
+covariances are left out, so the sum differs from the image's variance), the
+share of the image's variance held by the pixels each class dominates, and
+the largest pixels with their classes.
+
+    python bench/error_classes.py sphere --time 20 --seed 0
+    python bench/error_classes.py double_slabs --integrator path --time 20
+
+Writes bench/results/error_classes-<scene>-<integrator>-<seed>.json."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def class_variances(class_sum: np.ndarray, class_sum_sq: np.ndarray, n: int) -> np.ndarray:
+    """Per pixel and class the variance of the pixel's mean (n samples) that
+    the class's part of the sample value alone has (height x width x classes)."""
+    if n < 2:
+        raise ValueError("need at least 2 samples per pixel")
+    m = class_sum / n
+    return np.maximum(class_sum_sq / n - m * m, 0.0) * (n / (n - 1)) / n
+
+
+def summarise(var_c: np.ndarray, names: tuple[str, ...], image_var: np.ndarray, top: int) -> dict:
+    """The classes' image-mean variances and shares, the image's variance in the
+    pixels each class dominates, and the `top` largest pixels (by the sum over
+    classes)."""
+    tot_c = var_c.sum(axis=2)
+    means = {nm: float(var_c[..., i].mean()) for i, nm in enumerate(names)}
+    s = sum(means.values())
+    dom = np.argmax(var_c, axis=2)
+    iv = float(image_var.sum())
+    out = {
+        "image_variance": float(image_var.mean()),
+        "class_variance": means,
+        "class_share": {nm: (v / s if s > 0 else 0.0) for nm, v in means.items()},
+        "dominated_pixels": {nm: int(np.sum((dom == i) & (tot_c > 0))) for i, nm in enumerate(names)},
+        "dominated_share_of_image_variance": {
+            nm: (float(image_var[(dom == i) & (tot_c > 0)].sum()) / iv if iv > 0 else 0.0)
+            for i, nm in enumerate(names)},
+    }
+    flat = np.sort(tot_c.ravel())[::-1]
+    out["share_of_largest"] = {str(k): (float(flat[:k].sum() / flat.sum()) if flat.sum() > 0 else 0.0)
+                               for k in (10, 100, 1000)}
+    pix = []
+    for k in np.argsort(tot_c.ravel())[::-1][:top]:
+        y, x = divmod(int(k), tot_c.shape[1])
+        pix.append({"x": x, "y": y, "variance": float(tot_c[y, x]),
+                    **{nm: float(var_c[y, x, i]) for i, nm in enumerate(names)}})
+    out["largest"] = pix
+    return out
+
+
+def main() -> int:
+    import mpg
+    import mpg.render  # noqa: F401  (the module; `mpg.render` is also the function)
+    render_mod = sys.modules["mpg.render"]
+    from pixel_errors import load_scene   # bench/, the script's own folder
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("scene")
+    ap.add_argument("--integrator", default="mpg", help="name, with parameters as in mpg-bench: mpg/pixel_split=mse")
+    ap.add_argument("--time", type=float, default=20.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--top", type=int, default=12, help="largest pixels to list")
+    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="scene parameter")
+    args = ap.parse_args()
+    if not args.time > 0:
+        ap.error("--time must be > 0")
+    if any("=" not in p for p in args.param):
+        ap.error("--param takes NAME=VALUE, e.g. res=128")
+    loaded = load_scene(args.scene, dict(p.split("=", 1) for p in args.param), "error_classes")
+    if loaded is None:
+        return 1
+    name, *kv = args.integrator.split("/")
+    integ = dict(type=name)
+    for p in kv:
+        k, v = p.split("=", 1)
+        try:
+            integ[k] = json.loads(v)
+        except json.JSONDecodeError:
+            integ[k] = v
+    # mpg's final render (guiding.render_mpg calls mpg.render.render) and any
+    # other integrator's render record the classes; mpg's training passes do not
+    plain = render_mod.render
+
+    def recording(*a, **k):
+        return plain(*a, **dict(k, record_classes=True))
+
+    render_mod.render = recording
+    try:
+        img = recording(loaded[1], integ, time=args.time, seed=args.seed, progress=False)
+    finally:
+        render_mod.render = plain
+    if getattr(img, "class_sum", None) is None or img.spp < 2:
+        print("error_classes: fewer than 2 samples per pixel were rendered; give more --time", file=sys.stderr)
+        return 1
+    var_c = class_variances(img.class_sum, img.class_sum_sq, img.spp)
+    out = {"command": "python bench/error_classes.py " + " ".join(sys.argv[1:]),
+           "scene": args.scene, "integrator": args.integrator, "seed": args.seed, "time": args.time,
+           "spp": img.spp, "classes": list(render_mod.CLASS_NAMES)}
+    out.update(summarise(var_c, render_mod.CLASS_NAMES, img.variance.astype(float).mean(axis=2), args.top))
+    tag = pathlib.Path(args.scene).stem   # (a scene name, or a file's name without .xml)
+    path = ROOT / "bench" / "results" / f"error_classes-{tag}-{name}-{args.seed}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=1))
+    print(json.dumps({k: v for k, v in out.items() if k != "largest"}, indent=1))
+    for p in out["largest"][:args.top]:
+        cls = max(render_mod.CLASS_NAMES, key=lambda c: p[c])
+        print(f"  ({p['x']}, {p['y']}) variance {p['variance']:.3g}, mostly {cls} ({p[cls] / p['variance']:.0%})")
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
