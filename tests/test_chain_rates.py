@@ -855,3 +855,7 @@ def test_joint_maps_render_end_to_end_and_bad_values_are_refused(scenes_dir):
         w = mpg.render(sc, integrator=dict({"type": "mpg"}, **given), spp=4, seed=3, progress=False).stats["warnings"]
         assert any(msg in x and "ignored" in x for x in w), (given, w)
     assert not any("ignored" in x for x in a.stats["warnings"])
+    # a point chain light switches the hand-off, and with it the traces, off
+    pt = mpg.load_file(scenes_dir / "eval" / "sphere_point.xml", res="16")
+    w = mpg.render(pt, integrator={"type": "mpg", "trace_min_hits": 16}, spp=4, seed=3, progress=False).stats["warnings"]
+    assert any("trace_min_hits" in x and "ignored" in x for x in w), w

@@ -281,9 +281,6 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         warnings.append("joint_maps needs learned rates and delta_split=auto; ignored")
     if asked_min_samples and not (joint and auto and split == "auto"):
         warnings.append("joint_min_samples applies to joint_maps only; ignored")
-    if asked_hits and not (learn_trace and handoff and params["handoff_guided"] > 0):
-        warnings.append("trace_min_hits applies to learned traces only "
-                        "(learn_trace, chain_handoff, handoff_guided > 0); ignored")
     params["step_halvings"] = -1 if auto_halvings else int(halvings)
     init = str(params.pop("init", "surface"))
     n_photons = int(params.pop("photons", 200_000))
@@ -328,6 +325,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         handoff_note = "off: the scene has a point or spot chain light"
     else:
         handoff_note = "on" if handoff else "off"
+    # (after the hand-off's own switch: a point or spot chain light turns it off)
+    if asked_hits and not (learn_trace and handoff and params["handoff_guided"] > 0):
+        warnings.append("trace_min_hits applies to learned traces only "
+                        "(learn_trace, chain_handoff, handoff_guided > 0); ignored")
     # the training samples' sums (without learned rates: with them, the rates'
     # accumulator has them) and stats, for the line-search limit
     tsum = tsum2 = None
