@@ -4,10 +4,12 @@ split into chain estimates (X / q), the path tracer's shares of shared chain
 paths (its balance weight, Bernoulli rounds K'), handed-off pixels' traced
 chain light (guided traces and the path tracer's weights against them),
 chain paths the path tracer kept whole in pixels of rate 0 ("handed":
-untraced) and elsewhere ("unguided": an inactive leaf, a type the leaf never
-saw, a path the estimator does not own), the light seen through delta
-scattering only (glints in the glass, with the delta split's mean), and the
-rest (NEE, indirect light).
+untraced) and elsewhere because the estimator does not take them ("unseen":
+a type their leaf never saw, known_types; "inactive": no leaf with
+unfiltered samples, selective activation; "unowned": a length or light the
+estimator does not produce), the light seen through delta scattering only
+(glints in the glass, with the delta split's mean), and the rest (NEE,
+indirect light).
 
 Per class: the image mean of the variance of each pixel's mean that the
 class alone would have (its share of the sum over classes; the classes'
@@ -100,18 +102,8 @@ def main() -> int:
             integ[k] = json.loads(v)
         except json.JSONDecodeError:
             integ[k] = v
-    # mpg's final render (guiding.render_mpg calls mpg.render.render) and any
-    # other integrator's render record the classes; mpg's training passes do not
-    plain = render_mod.render
-
-    def recording(*a, **k):
-        return plain(*a, **dict(k, record_classes=True))
-
-    render_mod.render = recording
-    try:
-        img = recording(loaded[1], integ, time=args.time, seed=args.seed, progress=False)
-    finally:
-        render_mod.render = plain
+    # (mpg: its final render records the classes, its training passes do not)
+    img = mpg.render(loaded[1], integ, time=args.time, seed=args.seed, progress=False, record_classes=True)
     if getattr(img, "class_sum", None) is None or img.spp < 2:
         print("error_classes: fewer than 2 samples per pixel were rendered; give more --time", file=sys.stderr)
         return 1

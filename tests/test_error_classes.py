@@ -1,7 +1,8 @@
 """render(record_classes=True): each sample's value split by where it entered
 (chain estimates, the path tracer's shares of shared chain paths, traced
 chain light of handed-off pixels, chain paths the path tracer kept whole at
-rate 0 and elsewhere, light seen through delta scattering only, the rest), summed per pixel with
+rate 0 and elsewhere (by why), light seen through delta scattering only,
+the rest), summed per pixel with
 its squares (bench/error_classes.py). The classes add up to the sample, the
 record changes no image, and each class holds what it names."""
 
@@ -68,7 +69,7 @@ def test_each_class_holds_what_it_names(sphere):
     light is the path tracer's whole (no estimate, no share), all of it
     handed; the path tracer's light seen in the glass is the delta class."""
     p = _render(sphere, "path", record_classes=True, spp=256)   # (the glint is rare at 32^2)
-    for nm in ("chain", "shared", "traced", "handed", "unguided"):
+    for nm in ("chain", "shared", "traced", "handed", "unseen", "inactive", "unowned"):
         assert np.all(p.class_sum[..., C[nm]] == 0.0), nm
     assert p.class_sum[..., C["delta"]].sum() > 0 and p.class_sum[..., C["other"]].sum() > 0
     one = _render(sphere, "sms_star", record_classes=True, chain_rate_map=np.ones((RES, RES), np.float32))
@@ -79,7 +80,27 @@ def test_each_class_holds_what_it_names(sphere):
     for nm in ("chain", "shared", "traced"):
         assert np.all(zero.class_sum[..., C[nm]] == 0.0), nm
     assert zero.class_sum[..., C["handed"]].sum() > 0
-    assert np.all(zero.class_sum[..., C["unguided"]] == 0.0)
+    for nm in ("unseen", "inactive", "unowned"):
+        assert np.all(zero.class_sum[..., C[nm]] == 0.0), nm
+    # without a guide nothing is unseen or inactive; chains longer than
+    # max_chain are not the estimator's (the ball's TT is n = 2)
+    short = _render(sphere, {"type": "sms_star", "max_chain": 1}, record_classes=True, spp=64,
+                    chain_rate_map=np.ones((RES, RES), np.float32))
+    assert short.class_sum[..., C["unowned"]].sum() > 0
+    for nm in ("unseen", "inactive", "handed", "traced"):
+        assert np.all(short.class_sum[..., C[nm]] == 0.0), nm
+
+
+def test_mpg_records_its_final_render(sphere):
+    """mpg.render(..., record_classes=True) with mpg: the final render's samples
+    (the training's are not in the image), adding up as above; its chain
+    light reaches the chain classes."""
+    img = mpg.render(sphere, {"type": "mpg", "chain_rate": 0.5}, spp=48, seed=3, progress=False,
+                     record_classes=True)
+    assert img.class_sum.shape == (RES, RES, len(CLASS_NAMES))
+    total = img.rgb.astype(float).mean(axis=2) * img.spp
+    assert np.allclose(img.class_sum.sum(axis=2), total, rtol=1e-4, atol=1e-4 * max(1.0, float(total.max())))
+    assert img.class_sum[..., C["chain"]].sum() > 0
 
 
 def test_the_error_classes_script_writes_its_summary(tmp_path):

@@ -154,8 +154,14 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       } else if (!is_black(Le)) {
         const float w = prev_delta ? 1.f : power_heuristic(prev_pdf, scene.pdf_emitter_hit(prev_p, si));
         add(beta * Le * w);
-        if (chain_ok && !tau.empty())
-          st.add_class(st.pixel_chain_rate == 0.f ? Stats::kClassHanded : Stats::kClassUnguided, beta * Le * w);
+        if (chain_ok && !tau.empty() && st.record_classes) {
+          // why the estimator does not take it (active_for filled `leaf` if it ran)
+          const int c = st.pixel_chain_rate == 0.f ? Stats::kClassHanded
+                        : !leaf.done                ? Stats::kClassUnowned
+                        : leaf.leaf                 ? Stats::kClassUnseen
+                                                    : Stats::kClassInactive;
+          st.add_class(c, beta * Le * w);
+        }
         // (a chain path here has w = 1: its last vertex is a chain vertex)
         if (prev_delta) trace_alt_hit(si, beta * Le, w);
       }

@@ -58,12 +58,14 @@ struct Stats {
   // estimates (X / q), the path tracer's shares of shared chain paths, the
   // handed-off pixels' traced chain light (the guided traces and the path
   // tracer's weights against them), chain paths the path tracer kept whole in
-  // pixels of rate 0 (untraced), and elsewhere (paths the estimator does not
-  // take: an inactive leaf, a type the leaf never saw, not owned); the worker
-  // adds the light seen through delta scattering only and the rest
-  // (bench/error_classes.py)
-  static constexpr int kClasses = 7;
-  enum Class { kClassChain = 0, kClassShared, kClassTraced, kClassHanded, kClassUnguided, kClassDelta, kClassOther };
+  // pixels of rate 0 (untraced), and elsewhere because the estimator does not
+  // take them: a type their leaf never saw (known_types), no leaf with
+  // unfiltered samples (selective activation), not owned (a length or light
+  // the estimator does not produce); the worker adds the light seen through
+  // delta scattering only and the rest (bench/error_classes.py)
+  static constexpr int kClasses = 9;
+  enum Class { kClassChain = 0, kClassShared, kClassTraced, kClassHanded, kClassUnseen, kClassInactive,
+               kClassUnowned, kClassDelta, kClassOther };
   bool record_classes = false;
   Color sample_class[kClasses] = {};
   void add_class(int c, const Color& v) {

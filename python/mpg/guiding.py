@@ -163,7 +163,8 @@ def choose_step_halvings(stats: dict, n: int, variance: float, work: float, m_sc
 
 
 def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
-               seed: int, threads: int | None, progress: bool | None, sampler: str = "independent"):
+               seed: int, threads: int | None, progress: bool | None, sampler: str = "independent",
+               record_classes: bool = False):
     from mpg import _core
     from mpg.render import _as_bool, render
 
@@ -534,7 +535,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
                  chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap, sampler=sampler,
-                 guided_trace_map=gmap)
+                 guided_trace_map=gmap, record_classes=record_classes)
     st: dict[str, Any] = img.stats
     st["warnings"] = list(dict.fromkeys(st.get("warnings", []) + warnings))
     st["integrator"] = "mpg"

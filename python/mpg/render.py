@@ -21,7 +21,7 @@ from mpg.scene.desc import IntegratorDesc, SceneDesc
 # them until their own implementation lands (kept as hints, with a warning).
 IMPLEMENTED = {"path", "sms", "sms_star", "mpg"}
 # Image.class_sum's classes in order (Stats::Class; render(record_classes=True))
-CLASS_NAMES = ("chain", "shared", "traced", "handed", "unguided", "delta", "other")
+CLASS_NAMES = ("chain", "shared", "traced", "handed", "unseen", "inactive", "unowned", "delta", "other")
 
 PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters", "camera_delta", "delta_branch"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
@@ -291,10 +291,12 @@ def render(
     record_classes: also sum per pixel each sample's value split by where it
       entered (CLASS_NAMES: chain estimates, the path tracer's shares of shared
       chain paths, handed-off pixels' traced chain light, chain paths the path
-      tracer kept whole at rate 0 and elsewhere (those the estimator does not
-      take), light seen through delta scattering only, the rest;
+      tracer kept whole at rate 0 and elsewhere because the estimator does not
+      take them (a type their leaf never saw, no active leaf, not owned),
+      light seen through delta scattering only, the rest;
       mean over RGB) and its squares: Image.class_sum / class_sum_sq (crop
-      height x width x classes; bench/error_classes.py).
+      height x width x classes; bench/error_classes.py); mpg: its final
+      render's samples, not the training's.
     """
     from mpg import _core
 
@@ -316,7 +318,7 @@ def render(
 
         return render_mpg(scene, params, warnings, spp=spp, time=time, seed=seed, threads=threads,
                           sampler=sampler,
-                          progress=progress)
+                          progress=progress, record_classes=record_classes)
     try:
         integ = _core.make_integrator(scene.core, name, params)
     except ValueError as e:
