@@ -14,13 +14,16 @@ indirect light).
 Per class: the image mean of the variance of each pixel's mean that the
 class alone would have (its share of the sum over classes; the classes'
 covariances are left out, so the sum differs from the image's variance), the
-share of the image's variance held by the pixels each class dominates, and
-the largest pixels with their classes.
+share of the image's variance held by the pixels each class dominates, the
+share of the summed class variances in the largest pixels, and the largest
+pixels with their classes. Light from an environment seen through a chain
+counts in the rest.
 
     python bench/error_classes.py sphere --time 20 --seed 0
-    python bench/error_classes.py double_slabs --integrator path --time 20
+    python bench/error_classes.py double_slabs --integrator mpg/known_types=false --time 20
 
-Writes bench/results/error_classes-<scene>-<integrator>-<seed>.json."""
+Writes bench/results/error_classes-<scene>-<integrator>[-<param>...]-<seed>.json
+(the integrator's / and = as _), or --out."""
 
 from __future__ import annotations
 
@@ -83,12 +86,16 @@ def main() -> int:
     ap.add_argument("scene")
     ap.add_argument("--integrator", default="mpg", help="name, with parameters as in mpg-bench: mpg/pixel_split=mse")
     ap.add_argument("--time", type=float, default=20.0)
+    ap.add_argument("--spp", type=int, help="samples per pixel instead of --time")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--top", type=int, default=12, help="largest pixels to list")
     ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="scene parameter")
+    ap.add_argument("--out", help="the JSON file (default: bench/results/error_classes-<scene>-<integrator>-<seed>.json)")
     args = ap.parse_args()
     if not args.time > 0:
         ap.error("--time must be > 0")
+    if args.spp is not None and args.spp < 2:
+        ap.error("--spp must be >= 2")
     if any("=" not in p for p in args.param):
         ap.error("--param takes NAME=VALUE, e.g. res=128")
     loaded = load_scene(args.scene, dict(p.split("=", 1) for p in args.param), "error_classes")
@@ -97,29 +104,40 @@ def main() -> int:
     name, *kv = args.integrator.split("/")
     integ = dict(type=name)
     for p in kv:
+        if "=" not in p:
+            ap.error(f"--integrator takes NAME/KEY=VALUE/..., got {args.integrator!r}")
         k, v = p.split("=", 1)
         try:
             integ[k] = json.loads(v)
         except json.JSONDecodeError:
             integ[k] = v
     # (mpg: its final render records the classes, its training passes do not)
-    img = mpg.render(loaded[1], integ, time=args.time, seed=args.seed, progress=False, record_classes=True)
-    if getattr(img, "class_sum", None) is None or img.spp < 2:
+    limit = dict(spp=args.spp) if args.spp is not None else dict(time=args.time)
+    try:
+        img = mpg.render(loaded[1], integ, seed=args.seed, progress=False, record_classes=True, **limit)
+    except mpg.RenderError as e:
+        print(f"error_classes: {e}", file=sys.stderr)
+        return 1
+    if img.class_sum is None or img.spp < 2:
         print("error_classes: fewer than 2 samples per pixel were rendered; give more --time", file=sys.stderr)
         return 1
     var_c = class_variances(img.class_sum, img.class_sum_sq, img.spp)
     out = {"command": "python bench/error_classes.py " + " ".join(sys.argv[1:]),
-           "scene": args.scene, "integrator": args.integrator, "seed": args.seed, "time": args.time,
+           "scene": args.scene, "integrator": args.integrator, "seed": args.seed,
+           "time": None if args.spp is not None else args.time,
            "spp": img.spp, "classes": list(render_mod.CLASS_NAMES)}
     out.update(summarise(var_c, render_mod.CLASS_NAMES, img.variance.astype(float).mean(axis=2), args.top))
-    tag = pathlib.Path(args.scene).stem   # (a scene name, or a file's name without .xml)
-    path = ROOT / "bench" / "results" / f"error_classes-{tag}-{name}-{args.seed}.json"
+    # (a scene name, or a file's name without .xml; the integrator with its parameters)
+    tag = "-".join([pathlib.Path(args.scene).stem, args.integrator.replace("/", "_").replace("=", "_")]
+                   + [p.replace("=", "_") for p in args.param] + [str(args.seed)])
+    path = pathlib.Path(args.out) if args.out else ROOT / "bench" / "results" / f"error_classes-{tag}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=1))
     print(json.dumps({k: v for k, v in out.items() if k != "largest"}, indent=1))
     for p in out["largest"][:args.top]:
         cls = max(render_mod.CLASS_NAMES, key=lambda c: p[c])
-        print(f"  ({p['x']}, {p['y']}) variance {p['variance']:.3g}, mostly {cls} ({p[cls] / p['variance']:.0%})")
+        if p["variance"] > 0:
+            print(f"  ({p['x']}, {p['y']}) variance {p['variance']:.3g}, mostly {cls} ({p[cls] / p['variance']:.0%})")
     print(f"wrote {path}")
     return 0
 

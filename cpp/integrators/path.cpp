@@ -126,14 +126,15 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         // A path the chain estimator also produces: this side's share of it
         // (0 when the estimator takes it whole; design.md "No double counting").
         if (!is_black(Le)) {
+          bool whole = false;   // (record_classes: a light or length the estimator never produces)
           const float w = chains_->pt_weight(sep_si, sep_ctx, sep_depth, max_depth, chain_si.data(), tau, si,
-                                             rng, st, beta * Le, &leaf);
+                                             rng, st, beta * Le, &leaf, &whole);
           st.sample_alt_delta += beta * Le * (1.f - w);  // the path tracer alone keeps it whole
           st.sample_owned_hit = true;  // (w can round to 1 where the path tracer's density dominates)
           trace_alt_hit(si, beta * Le, w);
           if (w > 0.f) {
             L += beta * Le * w;
-            st.add_class(Stats::kClassShared, beta * Le * w);
+            st.add_class(whole ? Stats::kClassUnowned : Stats::kClassShared, beta * Le * w);
             st.owned_shared++;
           } else {
             st.owned_dropped++;

@@ -582,14 +582,18 @@ int ChainEstimator::pt_densities(const SurfaceInteraction& sep, const BSDFContex
 float ChainEstimator::pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx,
                                 uint32_t sep_depth, uint32_t max_depth, const SurfaceInteraction* verts,
                                 const std::string& tau, const SurfaceInteraction& light, PCG32& rng,
-                                Stats& st, const Color& unit, const LeafQuery* known) const {
+                                Stats& st, const Color& unit, const LeafQuery* known, bool* whole) const {
   thread_local ManifoldChain c;
   thread_local std::vector<Vec2> offsets;
   LightPoint lp;
   const ChainDistribution* guide = nullptr;
   double a = 0.0, b = 0.0;
   const int shared = pt_densities(sep, sep_ctx, sep_depth, max_depth, verts, tau, light, c, lp, guide, a, b, &st, known);
-  if (shared != 2) return shared == 1 ? 1.f : 0.f;
+  if (shared != 2) {
+    // (whole: a light or length the estimator never produces, the path tracer's alone)
+    if (whole) *whole = shared == 1;
+    return shared == 1 ? 1.f : 0.f;
+  }
   b = rate_b(b, st);  // mis_rate: b / q, q this pixel's rate (as estimate() takes it)
   if (!std::isfinite(b)) return 1.f;  // the estimator's share a P / (a P + b) vanishes
   // b / (a P + b) = b / (a + b) * E[K'] with the estimator's own trials

@@ -190,7 +190,8 @@ class ChainEstimator {
   float pt_weight(const SurfaceInteraction& sep, const BSDFContext& sep_ctx, uint32_t sep_depth,
                   uint32_t max_depth, const SurfaceInteraction* verts, const std::string& tau,
                   const SurfaceInteraction& light, PCG32& rng, Stats& st,
-                  const Color& unit = Color(0.f), const LeafQuery* known = nullptr) const;
+                  const Color& unit = Color(0.f), const LeafQuery* known = nullptr,
+                  bool* whole = nullptr) const;
 
   // handoff_guided (rate-0 pixels): does the technique run here?
   bool guided_trace_on() const { return p_.handoff_guided > 0 && p_.guide && p_.guide->valid() && active_; }

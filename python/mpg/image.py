@@ -33,6 +33,10 @@ class Image:
     chain_rate_map: np.ndarray | None = None
     delta_split_map: np.ndarray | None = None
     pixel_split_map: np.ndarray | None = None
+    # render(record_classes=True): per pixel and class the sums of the samples'
+    # parts and of their squares (mpg.render.CLASS_NAMES), else None
+    class_sum: np.ndarray | None = None
+    class_sum_sq: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
