@@ -17,6 +17,7 @@ import pytest
 
 import mpg
 from mpg.render import CLASS_NAMES
+from stats_util import run_pass
 
 RES = 32
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -97,14 +98,9 @@ def test_each_class_holds_what_it_names(sphere):
 def _guide(sc, spp, **params):
     """A guide from one recording pass of mpg's estimator at rate 1."""
     from mpg import _core
-    core = sc.core
-    job = _core.RenderJob(core, _core.make_integrator(core, "mpg", dict(record=True, chain_rate=1.0, **params)),
-                          spp, 5, 0, 0)
-    while not job.wait(0.05):
-        pass
     g = _core.GuidingState()
-    bmin, bmax = core.bbox
-    g.build_from([job.result()["subpaths"]], bmin, bmax, c=1.0, epsilon=0.1, threads=2)
+    r = run_pass(sc, "mpg", spp, 5, dict(record=True, chain_rate=1.0, **params))
+    g.build_from([r["subpaths"]], *sc.core.bbox, c=1.0, epsilon=0.1, threads=2)
     return g
 
 
