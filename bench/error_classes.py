@@ -78,8 +78,8 @@ def summarise(var_c: np.ndarray, names: tuple[str, ...], image_var: np.ndarray, 
 
 def main() -> int:
     import mpg
-    import mpg.render  # noqa: F401  (the module; `mpg.render` is also the function)
-    render_mod = sys.modules["mpg.render"]
+    from mpg.bench.runners import BenchError, parse_integrator
+    from mpg.render import CLASS_NAMES
     from pixel_errors import load_scene   # bench/, the script's own folder
 
     ap = argparse.ArgumentParser()
@@ -101,16 +101,13 @@ def main() -> int:
     loaded = load_scene(args.scene, dict(p.split("=", 1) for p in args.param), "error_classes")
     if loaded is None:
         return 1
-    name, *kv = args.integrator.split("/")
-    integ = dict(type=name)
-    for p in kv:
-        if "=" not in p:
-            ap.error(f"--integrator takes NAME/KEY=VALUE/..., got {args.integrator!r}")
-        k, v = p.split("=", 1)
-        try:
-            integ[k] = json.loads(v)
-        except json.JSONDecodeError:
-            integ[k] = v
+    try:   # (as mpg-bench names them: NAME/key=value/...)
+        spec = parse_integrator(args.integrator)
+    except BenchError as e:
+        ap.error(f"--integrator: {e}")
+    if spec.backend != "mpg":
+        ap.error("--integrator: an mpg integrator (the classes are the core's)")
+    integ = dict(spec.params, type=spec.name)
     # (mpg: its final render records the classes, its training passes do not)
     limit = dict(spp=args.spp) if args.spp is not None else dict(time=args.time)
     try:
@@ -125,8 +122,8 @@ def main() -> int:
     out = {"command": "python bench/error_classes.py " + " ".join(sys.argv[1:]),
            "scene": args.scene, "integrator": args.integrator, "seed": args.seed,
            "time": None if args.spp is not None else args.time,
-           "spp": img.spp, "classes": list(render_mod.CLASS_NAMES)}
-    out.update(summarise(var_c, render_mod.CLASS_NAMES, img.variance.astype(float).mean(axis=2), args.top))
+           "spp": img.spp, "classes": list(CLASS_NAMES)}
+    out.update(summarise(var_c, CLASS_NAMES, img.variance.astype(float).mean(axis=2), args.top))
     # (a scene name, or a file's name without .xml; the integrator with its parameters)
     tag = "-".join([pathlib.Path(args.scene).stem, args.integrator.replace("/", "_").replace("=", "_")]
                    + [p.replace("=", "_") for p in args.param] + [str(args.seed)])
@@ -135,7 +132,7 @@ def main() -> int:
     path.write_text(json.dumps(out, indent=1))
     print(json.dumps({k: v for k, v in out.items() if k != "largest"}, indent=1))
     for p in out["largest"][:args.top]:
-        cls = max(render_mod.CLASS_NAMES, key=lambda c: p[c])
+        cls = max(CLASS_NAMES, key=lambda c: p[c])
         if p["variance"] > 0:
             print(f"  ({p['x']}, {p['y']}) variance {p['variance']:.3g}, mostly {cls} ({p[cls] / p['variance']:.0%})")
     print(f"wrote {path}")

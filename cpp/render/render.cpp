@@ -176,7 +176,8 @@ void RenderJob::run() {
               st.sample_chain_part = Color(0.f);
               for (Color& c : st.sample_seen_P) c = Color(0.f);
               st.sample_delta_L = Color(0.f);
-              for (Color& c : st.sample_class) c = Color(0.f);
+              if (classes)
+                for (Color& c : st.sample_class) c = Color(0.f);
               Color Ls = integrator_->Li(scene, o, d, tmin, tmax, rng, st);
               if (classes) {
                 for (int c = 0; c < NC; ++c) cls[c] += st.sample_class[c];

@@ -466,8 +466,6 @@ def render(
         **{k: (float(v) if k.startswith(("max_chain_", "chain_m2", "pt_shared_m2", "limit_")) else int(v))
            for k, v in stats.items()},
     }
-    img = Image(rgb=mean.astype(np.float32), variance=var.astype(np.float32), spp=done,
-                stats=out_stats)
-    if record_classes:
-        img.class_sum, img.class_sum_sq = cls_sum, cls_sum2   # (None when no pass finished)
-    return img
+    # (class sums None without record_classes, or when no pass finished)
+    return Image(rgb=mean.astype(np.float32), variance=var.astype(np.float32), spp=done,
+                 stats=out_stats, class_sum=cls_sum, class_sum_sq=cls_sum2)
