@@ -491,25 +491,27 @@ def test_point_light_through_a_glass_slab_closed_form():
     assert abs(got.mean() / exp.mean() - 1) < 0.01
 
 
-def test_spot_light_through_mirror_closed_form():
-    """As the point-light mirror test, with a spot light: the chain's light
-    leaves the spot toward the mirror, so its falloff (linear in angle between
-    beam width and cutoff, Mitsuba 3's) applies along omega_L."""
-    cut, beam = 50.0, 20.0
-    xml = mirror_scene().replace(
+SPOT_CUT, SPOT_BEAM = 50.0, 20.0
+
+
+def spot_mirror_scene():
+    """mirror_scene with a spot light at the point light's place, aimed at (1, 0, 0)."""
+    return mirror_scene().replace(
         '<emitter type="point"><point name="position" x="0" y="1" z="0"/><rgb name="intensity" value="3"/></emitter>',
         f'<emitter type="spot"><transform name="to_world"><lookat origin="0, 1, 0" target="1, 0, 0" up="0, 1, 0"/>'
-        f'</transform><rgb name="intensity" value="3"/><float name="cutoff_angle" value="{cut}"/>'
-        f'<float name="beam_width" value="{beam}"/></emitter>')
-    sc = mpg.load_string(xml)
-    img = mpg.render(sc, integrator={"type": "sms", "tau": "R"}, spp=64, progress=False)
+        f'</transform><rgb name="intensity" value="3"/><float name="cutoff_angle" value="{SPOT_CUT}"/>'
+        f'<float name="beam_width" value="{SPOT_BEAM}"/></emitter>')
+
+
+def spot_falloff(d):
+    """Mitsuba 3's spot falloff of spot_mirror_scene's light along unit directions d."""
     axis = np.array([1.0, -1.0, 0.0]) / np.sqrt(2)
+    th = np.degrees(np.arccos(np.clip(d @ axis, -1, 1)))
+    return np.where(th <= SPOT_BEAM, 1.0, np.where(th >= SPOT_CUT, 0.0, (SPOT_CUT - th) / (SPOT_CUT - SPOT_BEAM)))
 
-    def falloff(d):
-        th = np.degrees(np.arccos(np.clip(d @ axis, -1, 1)))
-        return np.where(th <= beam, 1.0, np.where(th >= cut, 0.0, (cut - th) / (cut - beam)))
 
-    res, sub = 24, 6
+def spot_mirror_expected(res=24, sub=6):
+    """Pixel means of spot_mirror_scene's floor (as mirror_expected, with the falloff)."""
     t = np.tan(np.radians(15))
     off = (np.arange(sub) + 0.5) / sub
     px = (np.arange(res)[:, None] + off[None, :]).ravel()
@@ -522,13 +524,22 @@ def test_spot_light_through_mirror_closed_form():
         dirs = v / np.sqrt(d2)[..., None]
         if lx == 2.0:                          # the real light's direction is the mirrored one
             dirs = dirs * np.array([-1.0, 1.0, 1.0])
-        out += 3.0 * falloff(dirs) * (1 / np.sqrt(d2)) / d2
-    exp = (out * 0.5 / np.pi).reshape(res, sub, res, sub).mean(axis=(1, 3))
+        out += 3.0 * spot_falloff(dirs) * (1 / np.sqrt(d2)) / d2
+    return (out * 0.5 / np.pi).reshape(res, sub, res, sub).mean(axis=(1, 3))
+
+
+def test_spot_light_through_mirror_closed_form():
+    """As the point-light mirror test, with a spot light: the chain's light
+    leaves the spot toward the mirror, so its falloff (linear in angle between
+    beam width and cutoff, Mitsuba 3's) applies along omega_L."""
+    sc = mpg.load_string(spot_mirror_scene())
+    img = mpg.render(sc, integrator={"type": "sms", "tau": "R"}, spp=64, progress=False)
+    exp = spot_mirror_expected()
     a = img.rgb[..., 0].astype(np.float64)
     se = np.sqrt(img.variance[..., 0].sum()) / a.size
     assert abs(a.mean() - exp.mean()) < max(5 * se, 3e-3 * exp.mean()), (a.mean(), exp.mean())
     # the falloff edge runs through the image: a spot without falloff would differ
-    assert np.ptp(falloff(np.array([[1.0, -1.0, 0.0], [-0.2, -1.0, 0.0]]) / np.sqrt([[2.0], [1.04]]))) > 0.5
+    assert np.ptp(spot_falloff(np.array([[1.0, -1.0, 0.0], [-0.2, -1.0, 0.0]]) / np.sqrt([[2.0], [1.04]]))) > 0.5
     assert img.stats["chain_contributions"] > 0
 
 

@@ -179,6 +179,11 @@ py::dict pass_to_dict(PassResult& r) {
     put("delta_sum", r.delta_sum, rgb);
     put("delta_sum_sq", r.delta_sum_sq, rgb);
   }
+  out["lt_photons"] = r.lt_photons;
+  if (r.lt_photons > 0) {   // the light tracer's splats (Integrator::light_tracer)
+    put("lt_sum", r.lt_sum, rgb);
+    put("lt_sum_sq", r.lt_sum_sq, rgb);
+  }
   if (!r.class_sum.empty()) {   // PassConfig::record_classes
     const std::vector<ssize_t> cls = {r.height, r.width, Stats::kClasses};
     put("class_sum", r.class_sum, cls);
@@ -227,6 +232,10 @@ GuideConfig guide_config(float c, float epsilon, int max_depth, int threads, con
   return cfg;  // ranges are checked by GuidingState::build
 }
 
+// mpg's default photons per camera sample (docs/results.md, "Light tracing
+// the point lights' caustics")
+constexpr float kMpgLightTrace = 1.f;
+
 std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, const std::string& type,
                                             const py::dict& p) {
   PathParams pp;
@@ -243,6 +252,11 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
   pp.delta_branch = get<int>(p, "delta_branch", 0);
   if (pp.delta_branch < 0 || pp.delta_branch > 8)
     throw std::invalid_argument("delta_branch must be in [0, 8], got " + std::to_string(pp.delta_branch));
+  // photons per camera sample (chain integrators; mpg light traces by default)
+  pp.light_trace = get<float>(p, "light_trace", type == "mpg" ? kMpgLightTrace : 0.f);
+  if (!(pp.light_trace >= 0.f && pp.light_trace <= 64.f))
+    throw std::invalid_argument("light_trace must be in [0, 64] photons per camera sample, got " +
+                                std::to_string(pp.light_trace));
   if (type == "path") return std::make_shared<PathIntegrator>(pp);
   if (type == "sms" || type == "sms_star" || type == "mpg") {
     if (!scene || !scene->committed()) throw std::runtime_error("scene not committed");
@@ -649,6 +663,12 @@ PYBIND11_MODULE(_core, m) {
         auto* p = dynamic_cast<const PathIntegrator*>(&i);
         return p != nullptr && p->chains_delta_lights();
       })
+      .def_property_readonly("light_tracing", [](const Integrator& i) { return i.light_tracer() != nullptr; })
+      .def_property_readonly("light_trace_off", [](const Integrator& i) {
+        // why light_trace > 0 runs no light tracer ("" when it runs or was not asked)
+        auto* p = dynamic_cast<const PathIntegrator*>(&i);
+        return p ? p->light_trace_off() : std::string();
+      })
       .def("trace_photons", [](const Integrator& i, uint64_t count, uint64_t seed) {
         // Photon initialisation of MPG (supplemental Sec. 2): sub-path samples from photons.
         auto buf = std::make_shared<SubpathBuffer>();
@@ -675,12 +695,14 @@ PYBIND11_MODULE(_core, m) {
       .def(py::init([](std::shared_ptr<Scene> scene, std::shared_ptr<Integrator> integ, int spp, uint64_t seed,
                        uint64_t pass, int threads, py::object chain_rate_map, bool record_costs,
                        py::object delta_split_map, py::object pixel_split_map, bool stratify,
-                       uint64_t sample_offset, py::object guided_trace_map, bool record_classes) {
+                       uint64_t sample_offset, py::object guided_trace_map, bool record_classes,
+                       bool light_trace) {
         if (!scene->committed()) throw std::runtime_error("scene not committed");
         if (spp < 1) throw std::invalid_argument("spp must be >= 1");
         PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
         cfg.record_costs = record_costs;
         cfg.record_classes = record_classes;
+        cfg.light_trace = light_trace;
         cfg.stratify = stratify;
         cfg.sample_offset = sample_offset;
         if (!chain_rate_map.is_none()) {
@@ -725,7 +747,7 @@ PYBIND11_MODULE(_core, m) {
          py::arg("threads") = 0, py::arg("chain_rate_map") = py::none(), py::arg("record_costs") = false,
          py::arg("delta_split_map") = py::none(), py::arg("pixel_split_map") = py::none(),
          py::arg("stratify") = false, py::arg("sample_offset") = 0, py::arg("guided_trace_map") = py::none(),
-         py::arg("record_classes") = false)
+         py::arg("record_classes") = false, py::arg("light_trace") = true)
       .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
       .def("cancel", &RenderJob::cancel)
       .def_property_readonly("progress", &RenderJob::progress)

@@ -7,6 +7,8 @@
 
 namespace mpg {
 
+class LightTracer;
+
 class Integrator {
  public:
   virtual ~Integrator() = default;
@@ -27,6 +29,11 @@ class Integrator {
   // than the delta part of a sample's own camera path (render.cpp then leaves
   // that part out of a split pixel's mean).
   virtual bool delta_branched() const { return false; }
+  // The light tracer of the point lights' caustics at the camera's first hit
+  // (integrators/light_trace.h) and its photons per camera sample, or null:
+  // each render pass then also traces rate x spp x crop pixels photons.
+  virtual const LightTracer* light_tracer() const { return nullptr; }
+  virtual float light_trace_rate() const { return 0.f; }
 };
 
 }  // namespace mpg

@@ -216,7 +216,10 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       } else if (q >= 1.f || rng.next_float() < q) {
         ChainEstimator::PathDensities dens;
         dens.want_g = seps == 0;
+        // the camera's first hit: its chains to point/spot lights are the light tracer's
+        st.chain_skip_delta_lights = lt_ && depth == 0;
         const Color X = beta * chains_->estimate(si, ctx, depth, max_depth, rng, st, beta, trace_alt ? &dens : nullptr);
+        st.chain_skip_delta_lights = false;
         L += X * (1.f / q);
         st.add_class(Stats::kClassChain, X * (1.f / q));
         if (dens.ok)

@@ -10,6 +10,7 @@
 #include <memory>
 
 #include "integrators/integrator.h"
+#include "integrators/light_trace.h"
 #include "manifold/chain_estimator.h"
 
 namespace mpg {
@@ -32,6 +33,11 @@ struct PathParams {
   // its discrete weight times its probability, instead of one drawn (0: off).
   int delta_branch = 0;
   int hard_depth_cap = 1024;  // safety net against unbounded loops (counted)
+  // Photons per camera sample of the light tracer (integrators/light_trace.h;
+  // chain integrators only; 0: off): with a point or spot chain light, the
+  // chains to it from the camera's first hits are light traced instead of
+  // estimated.
+  float light_trace = 0.f;
 };
 
 // With a ChainEstimator (integrators `sms` and `sms_star`) every separator also
@@ -42,7 +48,16 @@ class PathIntegrator : public Integrator {
   explicit PathIntegrator(PathParams p, std::shared_ptr<const ChainEstimator> chains = nullptr)
       : p_(p), chains_(std::move(chains)) {
     if (chains_ && !chains_->active()) chains_.reset();  // effects follow the scene
+    if (chains_ && p_.light_trace > 0.f && p_.camera_delta != PathParams::CameraDelta::Only) {
+      auto lt = std::make_shared<LightTracer>(chains_->scene(), *chains_, p_.max_depth);
+      if (lt->usable()) lt_ = std::move(lt);
+      else lt_off_ = lt->why();
+    }
   }
+  const LightTracer* light_tracer() const override { return lt_.get(); }
+  float light_trace_rate() const override { return lt_ ? p_.light_trace : 0.f; }
+  // Why light_trace > 0 runs no light tracer ("" when it runs or was not asked)
+  const std::string& light_trace_off() const { return lt_off_; }
   bool chains_active() const { return chains_ != nullptr; }
   // a point or spot chain light: rate 0 would lose its light (ChainEstimator::has_delta_lights)
   bool chains_delta_lights() const { return chains_ && chains_->has_delta_lights(); }
@@ -118,6 +133,8 @@ class PathIntegrator : public Integrator {
                    int levels, PCG32& rng, Stats& stats) const;
   PathParams p_;
   std::shared_ptr<const ChainEstimator> chains_;
+  std::shared_ptr<const LightTracer> lt_;   // (holds a reference to *chains_)
+  std::string lt_off_;
 };
 
 }  // namespace mpg

@@ -78,6 +78,7 @@ ChainEstimator::ChainEstimator(const Scene& scene, ChainParams p)
     if (specular_node(scene.bsdfs, scene.shapes[i].bsdf, p.walk.glossy_threshold) && scene.shapes[i].emitter < 0 &&
         !(scene.shapes[i].caustic_receiver && !specular_node(scene.bsdfs, scene.shapes[i].bsdf, 0.f))) {
       specular_shape_[i] = 1;
+      if (!specular_node(scene.bsdfs, scene.shapes[i].bsdf, 0.f)) chain_shapes_smooth_ = false;
       seed_shapes_.push_back(int(i));
       areas.push_back(scene.shapes[i].area);
     }
@@ -349,9 +350,17 @@ static SurfaceInteraction vertex_interaction(const ManifoldChain& c, size_t i) {
   return si;
 }
 
-Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau) const {
+Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau, bool flux) const {
   // Product of the specular lobes' weights seen from x_D toward x_L, with the
   // path tracer's conventions (Fresnel, textures, 1/eta^2 radiance scaling).
+  // flux (a point or spot light): without the radiance scaling. G is then the
+  // solid angle at the light per unit area at x_D, |d omega_L / dA_D|, and a
+  // point light's intensity I is flux per solid angle where it sits: the
+  // irradiance is E = T I |d omega_L / dA_D| with T the lobes' plain weights
+  // (flux is conserved through an interface; the radiance's (eta_D / eta_L)^2
+  // is undone by the etendue, eta^2 cos d omega dA invariant). The two agree
+  // when x_D and the light sit in the same medium (the factors cancel); a
+  // light inside glass over a floor outside differs by eta^2 (test_light_trace).
   Color k(1.f);
   const size_t n = c.v.size();
   for (size_t i = 0; i < n; ++i) {
@@ -386,7 +395,8 @@ Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau) cons
       } else {
         const DielectricFresnel f = fresnel_dielectric(wim, b.eta);
         lobe = tau[i] == 'R' ? scene_.bsdfs.tex(b.specular_reflectance, v.uv) * f.F
-                             : scene_.bsdfs.tex(b.specular_transmittance, v.uv) * ((1.f - f.F) * f.eta_ti * f.eta_ti);
+                             : scene_.bsdfs.tex(b.specular_transmittance, v.uv) *
+                                   ((1.f - f.F) * (flux ? 1.f : f.eta_ti * f.eta_ti));
       }
       k *= lobe * (G * std::abs(wim) / (cos_i * cos_m));
       continue;
@@ -397,7 +407,7 @@ Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau) cons
     } else if (b.type == BSDFType::Dielectric) {
       const DielectricFresnel f = fresnel_dielectric(ci, b.eta);
       if (tau[i] == 'R') k *= scene_.bsdfs.tex(b.specular_reflectance, v.uv) * f.F;
-      else k *= scene_.bsdfs.tex(b.specular_transmittance, v.uv) * ((1.f - f.F) * f.eta_ti * f.eta_ti);
+      else k *= scene_.bsdfs.tex(b.specular_transmittance, v.uv) * ((1.f - f.F) * (flux ? 1.f : f.eta_ti * f.eta_ti));
     } else {
       return Color(0.f);
     }
@@ -827,6 +837,12 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
   thread_local std::vector<Round> rounds;
   do {
     if (!sample_light(rng, lp)) break;
+    // A point or spot light's chains at the camera's first hit are the light
+    // tracer's (integrators/light_trace.h): the same selection, value 0 here.
+    if (lp.point && st.chain_skip_delta_lights) {
+      st.chain_lt_skipped++;
+      break;
+    }
     // The leaf of (x_D, x_L): learned distribution, and selective activation.
     const ChainDistribution* guide = guide_at(to_f(xD), to_f(lp.p), &st);
     if (!guide && p_.guide && p_.guide->valid() && p_.selective) {
@@ -870,7 +886,7 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     const Vec3 wD = to_f(glm::normalize(chain.v[0].p - xD));
     const Color f = scene_.bsdfs.eval(ctx, si.wi, wD);
     if (is_black(f)) break;
-    const Color kap = kappa(chain, tau);
+    const Color kap = kappa(chain, tau, lp.point);
     if (is_black(kap)) break;
     {
       const DVec3 dl = lp.p - last.p;

@@ -129,6 +129,7 @@ class ChainEstimator {
   ChainEstimator(const Scene& scene, ChainParams p);
 
   bool active() const { return active_; }
+  const Scene& scene() const { return scene_; }
   // A point or spot light among the chain lights: the path tracer never hits
   // it, so rate 0 (the path tracer alone) would lose its light through chains.
   bool has_delta_lights() const { return has_delta_lights_; }
@@ -153,6 +154,12 @@ class ChainEstimator {
     if (!leaf) return !p_.selective;
     return !p_.known_types || leaf->has_type(int(tau.size()), tau_bits(tau.data(), int(tau.size())));
   }
+  // The longest chain estimated at a separator of loop depth `depth` (0: the
+  // camera's first hit) under max_depth (-1 as uint32: unbounded).
+  int max_chain_len(uint32_t depth, uint32_t max_depth) const { return max_len(depth, max_depth); }
+  // Every chain shape smooth (its BSDF a chain node at glossy threshold 0: no
+  // glossy chain vertex), as the light tracer needs (integrators/light_trace.h).
+  bool chain_shapes_smooth() const { return chain_shapes_smooth_; }
   // Is shape `s` a surface the walk accepts as a specular vertex?
   bool is_chain_shape(int s) const { return specular_shape_[size_t(s)] != 0; }
   // Are all of a traced seed's vertices on chain shapes? (trace_seed checks the
@@ -280,7 +287,7 @@ class ChainEstimator {
              const std::vector<Vec2>& offsets, const ChainDistribution* guide, PCG32& rng,
              ManifoldChain& chain, std::string& tau, Stats& st,
              TrialTally* tally = nullptr, const std::string* want_tau = nullptr) const;
-  Color kappa(const ManifoldChain& chain, const std::string& tau) const;
+  Color kappa(const ManifoldChain& chain, const std::string& tau, bool flux = false) const;
   // The leaf of (x_D, x_L), or null (no guide, or an empty leaf).
   const ChainDistribution* guide_at(const Vec3& xD, const Vec3& xL, Stats* st) const;
   // P(n) of the estimator at a leaf (Eq. 13's mixture; the initial law without a leaf).
@@ -354,6 +361,7 @@ class ChainEstimator {
   DiscreteDistribution seed_dist_;   // by area
   std::vector<int> chain_lights_;    // emitters used as x_L
   bool has_delta_lights_ = false;
+  bool chain_shapes_smooth_ = true;
   DiscreteDistribution light_dist_;  // by power
   std::vector<int> light_index_;     // emitter -> index in chain_lights_, or -1
   std::vector<Vec3> light_centre_;   // per chain light: its centroid (area lights; the guided trace's leaf)

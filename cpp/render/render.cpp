@@ -4,8 +4,10 @@
 #include <pmmintrin.h>
 
 #include <chrono>
+#include <stdexcept>
 
 #include "core/rng.h"
+#include "integrators/light_trace.h"
 
 namespace mpg {
 
@@ -15,6 +17,16 @@ RenderJob::RenderJob(std::shared_ptr<const Scene> scene, std::shared_ptr<const I
   const Camera& c = scene_->camera;
   const int tx = (c.crop_w + cfg_.tile - 1) / cfg_.tile, ty = (c.crop_h + cfg_.tile - 1) / cfg_.tile;
   tiles_total_ = std::max(1, tx * ty);
+  // Training passes never reach the image: no photons there (record_costs,
+  // or cfg_.light_trace off by mpg's training loop).
+  const LightTracer* lt = integrator_->light_tracer();
+  if (lt && &lt->scene() != scene_.get())
+    throw std::invalid_argument("the integrator's light tracer was made for another scene");
+  if (lt && cfg_.light_trace && !cfg_.record_costs) {
+    const double n = double(integrator_->light_trace_rate()) * double(cfg_.spp) * double(c.crop_w) * double(c.crop_h);
+    lt_photons_ = uint64_t(std::llround(std::max(1.0, n)));
+    lt_blocks_ = int((lt_photons_ + kLtBlock - 1) / kLtBlock);
+  }
 }
 
 RenderJob::~RenderJob() {
@@ -34,7 +46,10 @@ bool RenderJob::wait_for(double seconds) {
   return true;
 }
 
-double RenderJob::progress() const { return double(tiles_done_.load()) / double(tiles_total_); }
+double RenderJob::progress() const {
+  // (a photon block counted as a tile: both are a small share of a pass)
+  return double(tiles_done_.load() + lt_blocks_done_.load()) / double(tiles_total_ + lt_blocks_);
+}
 
 void RenderJob::run() {
   const auto t0 = std::chrono::steady_clock::now();
@@ -362,10 +377,67 @@ void RenderJob::run() {
   for (int t = 1; t < nthreads; ++t) pool.emplace_back(worker, t);
   worker(0);
   for (auto& th : pool) th.join();
+  if (lt_blocks_ > 0 && !cancel_.load()) {
+    // (all the threads asked for, whatever the tile count)
+    int nlt = cfg_.threads > 0 ? cfg_.threads : int(std::thread::hardware_concurrency());
+    nlt = std::max(1, std::min(nlt, lt_blocks_));
+    if (nlt > nthreads) stats.resize(size_t(nlt));
+    light_trace(stats, nlt);
+  }
   for (const Stats& s : stats) result_.stats.merge(s);
   result_.cancelled = cancel_.load();
   result_.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   done_.store(true);
+}
+
+// The light tracer's photons of the pass, in blocks of kLtBlock, each block's
+// random stream keyed by (seed, pass, block, photon) and its splats kept apart
+// and added in block order: the sums do not depend on the thread count.
+void RenderJob::light_trace(std::vector<Stats>& stats, int nthreads) {
+  const LightTracer& lt = *integrator_->light_tracer();
+  const Camera& cam = scene_->camera;
+  const size_t npix = size_t(cam.crop_w) * size_t(cam.crop_h);
+  result_.lt_photons = lt_photons_;
+  result_.lt_sum.assign(npix * 3, 0.0);
+  result_.lt_sum_sq.assign(npix * 3, 0.0);
+  // in waves of kLtWave blocks: the splats held at once stay bounded (at most
+  // one per photon, 16 bytes: 64 MiB a wave)
+  std::vector<std::vector<LightSplat>> blocks(static_cast<size_t>(std::min(lt_blocks_, kLtWave)));
+  for (int wave = 0; wave < lt_blocks_; wave += kLtWave) {
+    const int nb = std::min(kLtWave, lt_blocks_ - wave);
+    std::atomic<int> next{0};
+    auto worker = [&](int tid) {
+      _MM_SET_FLUSH_ZERO_MODE(_MM_FLUSH_ZERO_ON);
+      _MM_SET_DENORMALS_ZERO_MODE(_MM_DENORMALS_ZERO_ON);
+      Stats& st = stats[size_t(tid)];
+      for (;;) {
+        if (cancel_.load(std::memory_order_relaxed)) return;
+        const int j = next.fetch_add(1);
+        if (j >= nb) return;
+        const uint64_t b = uint64_t(wave + j);
+        const uint64_t first = b * kLtBlock, last = std::min(lt_photons_, first + kLtBlock);
+        std::vector<LightSplat>& out = blocks[size_t(j)];
+        out.clear();
+        for (uint64_t i = first; i < last; ++i) {
+          // (pixel keys of the camera samples are below 2^63)
+          PCG32 rng = make_stream(cfg_.seed, cfg_.pass, (uint64_t(1) << 63) | b, i - first);
+          lt.trace(rng, st, out);
+        }
+        lt_blocks_done_.fetch_add(1);
+      }
+    };
+    std::vector<std::thread> pool;
+    for (int t = 1; t < nthreads; ++t) pool.emplace_back(worker, t);
+    worker(0);
+    for (auto& th : pool) th.join();
+    if (cancel_.load()) return;
+    for (int j = 0; j < nb; ++j)
+      for (const LightSplat& sp : blocks[size_t(j)])
+        for (int c = 0; c < 3; ++c) {
+          result_.lt_sum[size_t(sp.pixel) * 3 + c] += sp.value[c];
+          result_.lt_sum_sq[size_t(sp.pixel) * 3 + c] += double(sp.value[c]) * sp.value[c];
+        }
+  }
 }
 
 PassResult render_pass(std::shared_ptr<const Scene> scene, std::shared_ptr<const Integrator> integrator,

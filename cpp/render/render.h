@@ -58,6 +58,12 @@ struct PassResult {
   // chain path; the tails' rare paths as often as the records see them)
   std::vector<double> trace_tail[Stats::kTraceKs + 1], trace_seen[Stats::kTraceKs + 1], trace_chain_sum;
   std::vector<double> delta_sum, delta_sum_sq;
+  // The light tracer's photons of this pass (Integrator::light_tracer; 0:
+  // none) and per pixel (height x width x 3) the sums of their splats and of
+  // the splats' squares: the pixel's light-traced part is lt_sum / photons
+  // over all passes, and each photon is one independent sample of it.
+  uint64_t lt_photons = 0;
+  std::vector<double> lt_sum, lt_sum_sq;
   Stats stats;
   double seconds = 0.0;
   bool cancelled = false;
@@ -89,6 +95,9 @@ struct PassConfig {
   // Per pixel the sums and squares (mean over RGB) of each sample's value
   // split by where it entered (Stats::kClasses; PassResult::class_sum)
   bool record_classes = false;
+  // Trace the integrator's light-tracer photons (Integrator::light_tracer);
+  // off in mpg's training passes, which never reach the image
+  bool light_trace = true;
   // Pixel positions from a per-pixel randomly shifted Sobol (0,2)-sequence
   // (core/rng.h shifted_sobol_2d) instead of independent random numbers; the
   // scene's sampler stratified/multijitter/ldsampler/... asks for it. Point
@@ -112,13 +121,18 @@ class RenderJob {
 
  private:
   void run();
+  void light_trace(std::vector<Stats>& stats, int nthreads);
+  static constexpr uint64_t kLtBlock = 4096;
+  static constexpr int kLtWave = 1024;
   std::shared_ptr<const Scene> scene_;
   std::shared_ptr<const Integrator> integrator_;
   PassConfig cfg_;
   PassResult result_;
   std::atomic<bool> cancel_{false}, done_{false};
-  std::atomic<int> tiles_done_{0};
+  std::atomic<int> tiles_done_{0}, lt_blocks_done_{0};
   int tiles_total_ = 1;
+  uint64_t lt_photons_ = 0;   // this pass's photons (light tracer)
+  int lt_blocks_ = 0;
   std::thread thread_;
 };
 

@@ -53,6 +53,10 @@ struct Stats {
   // RGB): an unbiased estimate of the second moment the roulette multiplies by
   // (1/q - 1) (design-notes "Chain rates per pixel").
   float pixel_chain_rate = -1.f;
+  // Set by the path tracer before each chain estimate (not merged): the
+  // estimate leaves out point and spot lights (a depth-0 separator whose
+  // chains to them the light tracer brings; integrators/light_trace.h).
+  bool chain_skip_delta_lights = false;
   // With PassConfig::record_classes (set by the render worker): the camera
   // sample's value split by where it entered (reset per camera sample): chain
   // estimates (X / q), the path tracer's shares of shared chain paths, the
@@ -187,6 +191,10 @@ struct Stats {
   uint64_t chain_inactive = 0;       // separators skipped by selective activation
   uint64_t chain_skipped = 0;        // separators skipped by the roulette (chain_rate < 1)
   uint64_t chain_handed = 0;         // separators in pixels of rate 0 (the path tracer's light whole)
+  // light tracing (integrators/light_trace.h)
+  uint64_t chain_lt_skipped = 0;     // chain estimates whose point/spot light the light tracer takes (value 0)
+  uint64_t lt_photons = 0, lt_rays = 0, lt_splats = 0;
+  uint64_t lt_rejected = 0;          // splats not finite or negative (dropped, counted)
   uint64_t guided_traces = 0;        // handoff_guided: traces drawn from a leaf in rate-0 pixels (and training's records)
   uint64_t guided_trace_hits = 0;    // ... that reached their light through the drawn letters
   std::vector<SubpathSample> subpaths;  // recorded in training passes
@@ -222,6 +230,8 @@ struct Stats {
     chain_inactive += o.chain_inactive;
     chain_skipped += o.chain_skipped;
     chain_handed += o.chain_handed;
+    chain_lt_skipped += o.chain_lt_skipped;
+    lt_photons += o.lt_photons; lt_rays += o.lt_rays; lt_splats += o.lt_splats; lt_rejected += o.lt_rejected;
     guided_traces += o.guided_traces;
     trace_rays += o.trace_rays;
     trace_lobes += o.trace_lobes;
@@ -255,6 +265,9 @@ struct Stats {
             {"chain_inactive", double(chain_inactive)}, {"chain_unknown_type", double(chain_unknown_type)},
             {"chain_skipped", double(chain_skipped)},
             {"chain_handed", double(chain_handed)},
+            {"chain_lt_skipped", double(chain_lt_skipped)},
+            {"lt_photons", double(lt_photons)}, {"lt_rays", double(lt_rays)},
+            {"lt_splats", double(lt_splats)}, {"lt_rejected", double(lt_rejected)},
             {"guided_traces", double(guided_traces)},
             {"guided_trace_hits", double(guided_trace_hits)},
             {"subpath_samples", double(subpaths.size())},

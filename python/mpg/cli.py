@@ -178,10 +178,16 @@ def _run(args) -> int:
             print(f"mpg-render: mpg trained {st['training_iterations']} iterations "
                   f"({st['spp_training']} spp, {st['seconds_training']:.1f} s), "
                   f"{st['guide_leaves']} leaves; {rates}", file=sys.stderr)
+        if st.get("lt_photons"):
+            print(f"mpg-render: light traced the point/spot lights' caustics seen directly: "
+                  f"{st['lt_photons']} photons, {st.get('lt_splats', 0)} reached the camera", file=sys.stderr)
         if st["rejected_samples"]:
             print(f"mpg-render: rejected {st['rejected_samples']} samples with NaN/Inf/negative "
                   f"values (NaN {st.get('rejected_nan', 0)}, Inf {st.get('rejected_inf', 0)}, "
                   f"negative {st.get('rejected_negative', 0)})", file=sys.stderr)
+        if st.get("lt_rejected"):
+            print(f"mpg-render: rejected {st['lt_rejected']} light-traced splats with NaN/Inf/negative values",
+                  file=sys.stderr)
     if img.spp == 0:
         print("mpg-render: warning: no complete pass; the image is black", file=sys.stderr)
     return 130 if st["interrupted"] else 0

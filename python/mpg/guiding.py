@@ -406,7 +406,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                                                             count_limits=auto_halvings,
                                                             guide_fraction=train_alpha))
             job = _core.RenderJob(core, integ, k, seed, 1_000_000 + iterations, threads or 0,
-                                  record_costs=auto, guided_trace_map=no_trace)
+                                  record_costs=auto, guided_trace_map=no_trace, light_trace=False)
             while not job.wait(0.05):
                 if budget_t is not None and _time.monotonic() - t0 > budget_t:
                     job.cancel()

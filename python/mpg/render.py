@@ -26,7 +26,7 @@ CLASS_NAMES = ("chain", "shared", "traced", "handed", "unseen", "inactive", "uno
 PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters", "camera_delta", "delta_branch"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
                 "threshold", "max_iterations", "min_step", "step_halvings", "form", "glossy_threshold",
-                "mis", "mis_rate", "chain_rate"}
+                "mis", "mis_rate", "chain_rate", "light_trace"}
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
                 "guide_dir", "training_fraction", "training_guide_fraction", "stree_c", "stree_epsilon", "stree_filter",
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
@@ -121,7 +121,7 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
     for k in ("continuation", "uniqueness_threshold", "threshold", "min_step", "glossy_threshold",
               "guide_fraction", "training_guide_fraction", "training_fraction", "stree_c",
               "stree_epsilon", "chain_rate",
-              "chain_rate_min", "chain_rate_train", "chain_handoff_negligible"):
+              "chain_rate_min", "chain_rate_train", "chain_handoff_negligible", "light_trace"):
         if k == "chain_rate" and name == "mpg" and str(core_params.get(k)).strip().lower() == "auto":
             if "guide" in core_params:
                 raise RenderError("chain_rate 'auto' is learned by mpg's training loop; "
@@ -327,12 +327,17 @@ def render(
         warnings.append(
             f"'{name}': the scene has no shape the manifold walk supports (smooth dielectric or "
             "conductor, no normal map) or no point/spot/area emitter; it renders as 'path'")
+    if integ.light_trace_off and integ.chains_delta_lights:
+        warnings.append(f"'{name}': light_trace is off: {integ.light_trace_off}; the chain estimator "
+                        "takes the point/spot lights' caustics")
     core_scene = scene.core
     cam = scene.desc.camera
     h, w = int(cam.crop[3]), int(cam.crop[2])
     acc = np.zeros((h, w, 3))
     acc2 = np.zeros((h, w, 3))
     cls_sum = cls_sum2 = None   # (record_classes)
+    lt_acc = lt_acc2 = None     # the light tracer's splat sums over all passes
+    lt_photons = 0
     stats: dict[str, float] = {}
     done = 0
     passes = 0
@@ -417,6 +422,10 @@ def render(
                 break
             acc += r["sum"]
             acc2 += r["sum_sq"]
+            if r["lt_photons"] > 0:
+                lt_acc = r["lt_sum"] if lt_acc is None else lt_acc + r["lt_sum"]
+                lt_acc2 = r["lt_sum_sq"] if lt_acc2 is None else lt_acc2 + r["lt_sum_sq"]
+                lt_photons += int(r["lt_photons"])
             if record_classes:
                 cls_sum = r["class_sum"] if cls_sum is None else cls_sum + r["class_sum"]
                 cls_sum2 = r["class_sum_sq"] if cls_sum2 is None else cls_sum2 + r["class_sum_sq"]
@@ -446,6 +455,12 @@ def render(
     else:
         mean = np.zeros_like(acc)
         var = np.full_like(acc, np.inf)
+    if lt_photons > 0:
+        # the light-traced part: each photon an independent sample of every
+        # pixel's part (most of them 0), so its mean and the variance of the mean
+        lt_mean = lt_acc / lt_photons
+        mean = mean + lt_mean
+        var = var + np.maximum(lt_acc2 / lt_photons - lt_mean * lt_mean, 0.0) / max(lt_photons - 1, 1)
     rejected = int(stats.get("rejected_nan", 0) + stats.get("rejected_inf", 0)
                    + stats.get("rejected_negative", 0))
     out_stats: dict[str, Any] = {

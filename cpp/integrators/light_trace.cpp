@@ -1,0 +1,211 @@
+#include "integrators/light_trace.h"
+
+#include <algorithm>
+#include <cmath>
+
+namespace mpg {
+
+LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int max_depth)
+    : scene_(scene), chains_(chains) {
+  if (!chains.active()) {
+    why_ = "the scene runs no chain estimator";
+    return;
+  }
+  std::vector<float> w;
+  for (size_t e = 0; e < scene.emitters.size(); ++e) {
+    const Emitter& em = scene.emitters[e];
+    // the estimator's chain lights that are delta positions (chain_estimator.cpp)
+    if ((em.type == Emitter::Type::Point || em.type == Emitter::Type::Spot) && em.power > 0.f &&
+        std::isfinite(em.power)) {
+      lights_.push_back(int(e));
+      w.push_back(em.power);
+    }
+  }
+  if (lights_.empty()) {
+    why_ = "the scene has no point or spot light";
+    return;
+  }
+  light_dist_.build(w);
+  // The camera's first hits: a depth-0 separator as the path tracer counts it.
+  max_depth_ = uint32_t(max_depth);
+  nmax_ = std::min(chains.max_chain_len(0, max_depth_), 32);
+  if (nmax_ < 1) {
+    why_ = "max_depth leaves no room for a chain after the camera's first hit";
+    return;
+  }
+  if (!chains.chain_shapes_smooth()) {
+    // A glossy chain vertex would need the adjoint of its rough BSDF and the
+    // estimator's offset normals; not done: the estimator keeps those paths.
+    why_ = "a chain shape is glossy (only smooth glass and mirrors are light traced)";
+    return;
+  }
+  const Camera& cam = scene.camera;
+  if (cam.filter.type != FilterSampler::Type::Box || std::abs(cam.filter.radius - 0.5f) > 1e-6f) {
+    why_ = "the film's reconstruction filter is not a box of one pixel";
+    return;
+  }
+  // Bounding sphere of the chain shapes: photons are aimed into its cone.
+  Vec3 lo(kInf), hi(-kInf);
+  for (size_t s = 0; s < scene.shapes.size(); ++s) {
+    if (!chains.is_chain_shape(int(s))) continue;
+    const Shape& sh = scene.shapes[s];
+    if (sh.kind == Shape::Kind::Sphere) {
+      lo = glm::min(lo, sh.center - Vec3(sh.radius));
+      hi = glm::max(hi, sh.center + Vec3(sh.radius));
+    } else {
+      for (const Vec3& p : sh.positions) {
+        lo = glm::min(lo, p);
+        hi = glm::max(hi, p);
+      }
+    }
+  }
+  if (!(lo.x <= hi.x)) {
+    why_ = "no chain shape";
+    return;
+  }
+  bound_c_ = 0.5f * (lo + hi);
+  // (a margin for float rounding of the hits against the box)
+  bound_r_ = 0.5 * glm::length(DVec3(hi - lo)) * (1.0 + 1e-4) + 1e-4 * std::max(1.f, max_comp(glm::abs(bound_c_)));
+  to_local_ = glm::inverse(cam.to_world);
+  cam_o_ = Vec3(cam.to_world * Vec4(0.f, 0.f, 0.f, 1.f));
+  cam_fwd_ = glm::normalize(Vec3(cam.to_world * Vec4(0.f, 0.f, 1.f, 0.f)));
+  const double a_pix = (2.0 * cam.tan_half_x / cam.width) * (2.0 * cam.tan_half_y / cam.height);
+  if (!(a_pix > 0.0)) {
+    why_ = "the camera's field of view is empty";
+    return;
+  }
+  inv_a_pix_ = 1.0 / a_pix;
+  usable_ = true;
+}
+
+void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) const {
+  st.lt_photons++;
+  float u = rng.next_float();
+  const size_t k = light_dist_.sample(u);
+  const Emitter& em = scene_.emitters[size_t(lights_[k])];
+  const double psel = light_dist_.pmf(k);
+  const Vec3 xL = em.position;
+  // Direction: uniform in the cone around the chain shapes' bounding sphere
+  // (uniform on the sphere of directions from inside it). A path whose first
+  // segment leaves the cone meets no chain shape first, so it is not one of
+  // this tracer's paths: the cone loses nothing. In double: a far light's cone
+  // has 1 - cos_max ~ 1e-9.
+  const Vec2 u2(rng.next_float(), rng.next_float());
+  const DVec3 to_c = DVec3(bound_c_) - DVec3(xL);
+  const double dist_c = glm::length(to_c);
+  double one_minus_cos_max = 2.0;   // the whole sphere
+  if (dist_c > bound_r_) {
+    const double s2 = (bound_r_ / dist_c) * (bound_r_ / dist_c);
+    one_minus_cos_max = s2 / (1.0 + std::sqrt(std::max(0.0, 1.0 - s2)));
+  }
+  const double omc = double(u2.x) * one_minus_cos_max;   // 1 - cos(theta), uniform
+  const double cos_t = 1.0 - omc;
+  const double sin_t = std::sqrt(std::max(0.0, omc * (2.0 - omc)));
+  const double phi = 2.0 * M_PI * double(u2.y);
+  const Frame fr(dist_c > bound_r_ ? Vec3(to_c / dist_c) : Vec3(0.f, 0.f, 1.f));
+  Vec3 d = glm::normalize(fr.to_world(Vec3(float(sin_t * std::cos(phi)), float(sin_t * std::sin(phi)), float(cos_t))));
+  const double pdf_dir = 1.0 / (2.0 * M_PI * one_minus_cos_max);
+  Color I = em.value;
+  if (em.type == Emitter::Type::Spot) I *= em.spot_falloff(em.frame.to_local(d));
+  if (is_black(I)) return;
+  Color flux = I * float(1.0 / (psel * pdf_dir));
+  // Trace through chain vertices (the estimator's shapes and smooth BSDFs),
+  // R/T by Fresnel as the BSDF samples them.
+  Vec3 o = xL;
+  Vec3 prev_ng(0.f);
+  int n = 0;
+  char letters[32];   // light -> x_D order (n <= nmax_ <= max_chain)
+  for (;;) {
+    const Vec3 org = n == 0 ? o : offset_ray_origin(o, prev_ng, d);
+    st.lt_rays++;
+    SurfaceInteraction si = scene_.intersect(org, d, 0.f, kInf);
+    if (!si.valid) return;
+    const Shape& shape = scene_.shapes[size_t(si.shape)];
+    const BSDFContext ctx = scene_.bsdfs.resolve(shape.bsdf, si);
+    if (!ctx.leaf) return;
+    const bool chain_vertex = chains_.is_chain_shape(si.shape) && chains_.is_chain_bsdf(*ctx.leaf);
+    if (!chain_vertex) {
+      // not a separator (a delta surface off the chain shapes), or the
+      // light's direct illumination (next-event estimation's): none of ours
+      if (ctx.leaf->is_delta() || n == 0) return;
+      // only the chains the estimator would own at the camera's first hit
+      // (sms: its one type), the letters in x_D -> x_L order
+      std::string tau(letters, letters + n);
+      std::reverse(tau.begin(), tau.end());
+      if (!chains_.owns(0, max_depth_, tau)) return;
+      connect(si, shape, flux, out, st);   // x_D
+      return;
+    }
+    if (n == nmax_) return;
+    Vec3 wo;
+    const float u1 = rng.next_float();
+    const Vec2 v2(rng.next_float(), rng.next_float());
+    const Vec3 wl = si.wi;   // toward the light side
+    const BSDFSample bs = scene_.bsdfs.sample(ctx, wl, u1, v2, wo);
+    if (!(bs.pdf > 0.f) || is_black(bs.weight) || !bs.delta) return;
+    // flux weight: radiance mode's (eta_i / eta_t)^2 of a refraction undone
+    // (bs.eta = eta_t / eta_i), and the adjoint's shading-normal correction
+    // |cos(n_s, w_l) cos(n_g, w_o)| / |cos(n_g, w_l) cos(n_s, w_o)| (1 without a normal map)
+    Color wgt = bs.weight;
+    if (bs.transmission) wgt *= bs.eta * bs.eta;
+    const float num = std::abs(glm::dot(ctx.frame.n, wl) * glm::dot(si.ng, wo));
+    const float den = std::abs(glm::dot(si.ng, wl) * glm::dot(ctx.frame.n, wo));
+    if (!(den > 0.f)) return;
+    flux *= wgt * (num / den);
+    letters[n++] = bs.transmission ? 'T' : 'R';
+    o = si.p;
+    prev_ng = si.ng;
+    d = wo;
+  }
+}
+
+void LightTracer::connect(SurfaceInteraction si, const Shape& shape, const Color& flux,
+                          std::vector<LightSplat>& out, Stats& st) const {
+  const Camera& cam = scene_.camera;
+  const Vec3 wl = si.wi;   // toward the last chain vertex
+  const Vec3 to_cam = cam_o_ - si.p;
+  const float dist = glm::length(to_cam);
+  if (!(dist > 0.f)) return;
+  const Vec3 wc = to_cam / dist;
+  // film position (generate_ray inverted): local x left, y up, z forward
+  const Vec4 q = to_local_ * Vec4(si.p, 1.f);
+  if (!(q.z > 0.f)) return;
+  // the camera ray's clip distances are along the optical axis, in the
+  // camera's local units (Camera::generate_ray)
+  if (q.z < cam.near_clip || q.z > cam.far_clip) return;
+  const float X = q.x / q.z, Y = q.y / q.z;
+  const float fx = 0.5f * (1.f - X / cam.tan_half_x) * float(cam.width);
+  const float fy = 0.5f * (1.f - Y / cam.tan_half_y) * float(cam.height);
+  if (!(fx >= 0.f && fy >= 0.f)) return;
+  const int px = int(std::floor(fx)) - cam.crop_x, py = int(std::floor(fy)) - cam.crop_y;
+  if (px < 0 || py < 0 || px >= cam.crop_w || py >= cam.crop_h) return;
+  const float cos_c = glm::dot(cam_fwd_, -wc);
+  if (!(cos_c > 0.f)) return;
+  // the BSDF as the camera path evaluates it there: wi toward the camera
+  si.wi = wc;
+  const BSDFContext ctx = scene_.bsdfs.resolve(shape.bsdf, si);
+  if (!ctx.leaf) return;
+  const Color f = scene_.bsdfs.eval(ctx, wc, wl);   // f_s(w_c, w_l) |cos(n_s, w_l)|
+  if (is_black(f)) return;
+  const double cos_l = std::abs(double(glm::dot(si.ng, wl)));
+  if (!(cos_l > 0.0)) return;
+  st.shadow_rays++;
+  // visible as the camera ray sees it: that ray starts at the near plane
+  // (world distance dist * near_clip / q.z from the pinhole), so what lies
+  // nearer does not occlude
+  const Vec3 org = offset_ray_origin(si.p, si.ng, wc);
+  const float t_near = dist * cam.near_clip / q.z;
+  if (scene_.occluded(org, wc, 0.f, (glm::length(cam_o_ - org) - t_near) * (1.f - 1e-4f))) return;
+  const double cc = double(cos_c);
+  const double g = std::abs(double(glm::dot(si.ng, wc))) * inv_a_pix_ / (cos_l * cc * cc * cc * double(dist) * double(dist));
+  Color v(0.f);
+  for (int c = 0; c < 3; ++c) v[c] = float(double(flux[c]) * double(f[c]) * g);
+  if (!(std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z)) || v.x < 0.f || v.y < 0.f || v.z < 0.f) {
+    st.lt_rejected++;
+    return;
+  }
+  st.lt_splats++;
+  out.push_back(LightSplat{uint32_t(py) * uint32_t(cam.crop_w) + uint32_t(px), v});
+}
+
+}  // namespace mpg

@@ -1,0 +1,84 @@
+// Light tracing of the point and spot lights' caustics seen directly by the
+// camera (docs/design-notes.md, "Light tracing the point lights' caustics").
+//
+// A point light's caustic on a diffuse floor is its irradiance through a
+// specular chain, E(x) = I T |d omega_L / dA_x|, which is unbounded at a focus
+// (a ball lens focuses to a spot, a fold to a line): an estimator that
+// evaluates E at points the camera picks (the chain estimator, SMS, MPG) has
+// a second moment ~ int E^2 dA, infinite or nearly so there. A photon traced
+// from the light lands with density proportional to E, so its splat carries a
+// bounded weight: the same integral with finite variance (Veach 1997 Sec. 10.2,
+// the light-tracing strategy of bidirectional path tracing).
+//
+// The path set is partitioned, never shared: for a separator x_D hit by the
+// camera ray itself (loop depth 0) the chain estimator leaves out its chains
+// to point and spot lights (Stats::chain_skip_delta_lights), and the photons
+// of this tracer bring exactly those paths: light -> 1..nmax chain vertices
+// (the estimator's chain shapes and BSDFs) -> separator x_D -> camera, nmax as
+// the estimator's at depth 0, of the types it owns there (sms: its one). The path tracer never reaches a delta light, so
+// nothing else produces them. Deeper separators (x_D seen through glass) stay
+// the estimator's: a photon cannot reach the camera through delta scattering.
+//
+// Splat of a photon at x_D with flux weight Phi (intensity / direction pdf
+// times the chain's discrete weights), x_D at distance d from the pinhole c,
+// camera axis angle theta_c (pixel value = mean of the radiance over the
+// pixel's area A_pix on the plane at unit distance):
+//
+//   Phi * f_s(w_c, w_l) |cos(n_s, w_l)| / |cos(n_g, w_l)| * |cos(n_g, w_c)| / (A_pix cos^3 theta_c d^2)
+//
+// (the BSDF as the camera path evaluates it, with the adjoint's shading-normal
+// correction; Veach 1997 Sec. 5.3). At chain vertices the radiance-mode weight
+// of a refraction, (eta_i / eta_t)^2 (1 - F) / (1 - F), is a flux weight of 1.
+#pragma once
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "core/rng.h"
+#include "manifold/chain_estimator.h"
+#include "render/stats.h"
+#include "scene/scene.h"
+
+namespace mpg {
+
+struct LightSplat {
+  uint32_t pixel = 0;   // index into the crop window, y * crop_w + x
+  Color value{0.f};     // the photon's contribution to that pixel (not yet divided by the photon count)
+};
+
+class LightTracer {
+ public:
+  // Built for a chain estimator at a given max_depth (the path tracer's). usable()
+  // false (with why()) when the scene gives it nothing to do or it cannot
+  // take the estimator's paths exactly.
+  LightTracer(const Scene& scene, const ChainEstimator& chains, int max_depth);
+  bool usable() const { return usable_; }
+  const Scene& scene() const { return scene_; }
+  const std::string& why() const { return why_; }
+  // One photon: emitted, traced through chain vertices, splatted (at most one
+  // splat appended). Draws from rng only.
+  void trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) const;
+
+ private:
+  // The photon's flux arriving at separator x_D (si, its wi toward the chain):
+  // the camera connection and its splat.
+  void connect(SurfaceInteraction si, const Shape& shape, const Color& flux, std::vector<LightSplat>& out,
+               Stats& st) const;
+  const Scene& scene_;
+  const ChainEstimator& chains_;
+  bool usable_ = false;
+  std::string why_;
+  int nmax_ = 0;
+  uint32_t max_depth_ = 0;
+  std::vector<int> lights_;          // point and spot chain lights
+  DiscreteDistribution light_dist_;  // by power
+  Vec3 bound_c_{0.f};                // bounding sphere of the chain shapes
+  double bound_r_ = 0.0;
+  // camera
+  Mat4 to_local_{1.f};
+  Vec3 cam_o_{0.f}, cam_fwd_{0.f, 0.f, 1.f};
+  double inv_a_pix_ = 0.0;
+};
+
+}  // namespace mpg
