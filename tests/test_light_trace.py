@@ -169,6 +169,70 @@ def test_light_inside_the_slab_matches_the_closed_form(lt):
     assert abs(got.mean() / exp.mean() - 1) < (0.02 if lt == 0 else 0.03)
 
 
+# test_chains' slab seen from above, with a wider view and a slab of 8 x 8
+# (so that sms_star's uniform seeds on it converge; the paths of the view
+# stay inside it): the camera sees the floor through the slab only.
+SLAB_ABOVE = SLAB_POINT.replace('<float name="fov" value="6"/>', '<float name="fov" value="40"/>').replace(
+    '<scale x="30" y="0.25" z="30"/>', '<scale x="4" y="0.25" z="4"/>')
+
+
+def _slab_above_expected(res=8, sub=4, fov=40.0):
+    """T_cam rho/pi I (1 - F)^2 |d omega_L / dA_D| (test_chains' closed form)
+    at the floor point of each sub-pixel ray, refracted twice on its way down,
+    averaged per pixel."""
+    eta, y0, y1, I, rho = 1.5, 0.75, 1.25, 10.0, 0.5
+    xL, o = np.array([0.0, 2.5, 0.0]), np.array([0.6, 5.0, 0.2])
+    t = np.tan(np.radians(fov / 2))
+    fwd, upv = np.array([0.0, -1.0, 0.0]), np.array([0.0, 0.0, -1.0])
+    left = np.cross(upv, fwd)
+    exp = np.zeros((res, res))
+    for j in range(res):
+        for i in range(res):
+            acc = 0.0
+            for sj in range(sub):
+                for si in range(sub):
+                    fx, fy = i + (si + 0.5) / sub, j + (sj + 0.5) / sub
+                    d = fwd - left * (2 * fx / res - 1) * t - upv * (2 * fy / res - 1) * t
+                    d /= np.linalg.norm(d)
+                    c = -d[1]
+                    s = np.sqrt(1 - c * c)
+                    st = s / eta
+                    h = np.array([d[0], 0, d[2]]) / max(s, 1e-12)
+                    p = np.array([o[0], 0.0, o[2]]) + h * (s / c * ((o[1] - y1) + y0) + st / np.sqrt(1 - st * st) * (y1 - y0))
+                    w = _slab_path(p, xL, y0, y1, eta)
+                    hh = 1e-4
+                    cols = []
+                    for k in (0, 2):
+                        dv = np.zeros(3)
+                        dv[k] = hh
+                        cols.append((_slab_path(p + dv, xL, y0, y1, eta) - _slab_path(p - dv, xL, y0, y1, eta)) / (2 * hh))
+                    G = abs(np.cross(cols[0], cols[1]) @ w)
+                    acc += (1 - _fresnel(c, eta)) ** 2 * rho / np.pi * I * (1 - _fresnel(w[1], eta)) ** 2 * G
+            exp[j, i] = acc / sub**2
+    return exp
+
+
+@pytest.mark.parametrize("integ,spp", [({"type": "sms", "tau": "TT"}, 64),
+                                       ({"type": "sms_star", "light_trace": 64, "light_trace_through": True}, 256)])
+def test_slab_seen_from_above_matches_the_closed_form(integ, spp):
+    """The caustic seen through glass: the estimator at the camera path's
+    separator behind the slab (sms), or photons connected to the camera by a
+    camera-side chain (light_trace_through: ChainEstimator::connect_point,
+    kappa G K / P(m) with G = |d omega_c / dA_D|), which then takes those
+    separators' point-light chains whole (no estimate contributes)."""
+    sc = mpg.load_string(SLAB_ABOVE)
+    img = mpg.render(sc, integrator=integ, spp=spp, seed=1, progress=False)
+    exp = _slab_above_expected()
+    got = img.rgb[..., 0].astype(np.float64)
+    var = img.variance[..., 0].astype(np.float64)
+    through = integ.get("light_trace_through", False)
+    assert (img.stats["lt_chain_splats"] > 10 * got.size) == through
+    assert (img.stats["chain_contributions"] == 0) == through
+    assert np.all(np.abs(got - exp) < 5 * np.sqrt(var)), (got, exp)
+    assert abs(got.mean() - exp.mean()) / (np.sqrt(var.sum()) / got.size) < 5
+    assert abs(got.mean() / exp.mean() - 1) < 0.03
+
+
 def test_light_tracer_takes_only_the_types_sms_owns():
     """sms estimates one chain type; the photons of any other type are
     nobody's (the path tracer cannot reach a point light), so the light tracer

@@ -235,6 +235,7 @@ GuideConfig guide_config(float c, float epsilon, int max_depth, int threads, con
 // mpg's default photons per camera sample (docs/results.md, "Light tracing
 // the point lights' caustics")
 constexpr float kMpgLightTrace = 1.f;
+constexpr bool kMpgLightTraceThrough = true;
 
 std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, const std::string& type,
                                             const py::dict& p) {
@@ -254,6 +255,7 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
     throw std::invalid_argument("delta_branch must be in [0, 8], got " + std::to_string(pp.delta_branch));
   // photons per camera sample (chain integrators; mpg light traces by default)
   pp.light_trace = get<float>(p, "light_trace", type == "mpg" ? kMpgLightTrace : 0.f);
+  pp.light_trace_through = get<bool>(p, "light_trace_through", type == "mpg" ? kMpgLightTraceThrough : false);
   if (!(pp.light_trace >= 0.f && pp.light_trace <= 64.f))
     throw std::invalid_argument("light_trace must be in [0, 64] photons per camera sample, got " +
                                 std::to_string(pp.light_trace));

@@ -5,7 +5,7 @@
 
 namespace mpg {
 
-LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int max_depth)
+LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int max_depth, bool through)
     : scene_(scene), chains_(chains) {
   if (!chains.active()) {
     why_ = "the scene runs no chain estimator";
@@ -75,6 +75,11 @@ LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int m
     return;
   }
   inv_a_pix_ = 1.0 / a_pix;
+  // Camera-side chains of 1..mmax vertices (room for a light chain of one
+  // vertex behind them: m + 1 + n + 1 segments <= max_depth)
+  if (through && chains.sms_star_mode())
+    mmax_cam_ = max_depth < 0 ? chains.max_chain() : std::min(chains.max_chain(), max_depth - 3);
+  mmax_cam_ = std::max(mmax_cam_, 0);
   usable_ = true;
 }
 
@@ -132,8 +137,14 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
       // (sms: its one type), the letters in x_D -> x_L order
       std::string tau(letters, letters + n);
       std::reverse(tau.begin(), tau.end());
-      if (!chains_.owns(0, max_depth_, tau)) return;
-      connect(si, shape, flux, out, st);   // x_D
+      const size_t before = out.size();
+      if (chains_.owns(0, max_depth_, tau)) connect(si, shape, flux, out, st);   // x_D seen directly
+      if (mmax_cam_ > 0) connect_chain(si, shape, flux, tau, rng, out, st);     // ... or through glass
+      // one photon, one sample of each pixel: two splats in one pixel are one value
+      if (out.size() == before + 2 && out[before].pixel == out[before + 1].pixel) {
+        out[before].value += out[before + 1].value;
+        out.pop_back();
+      }
       return;
     }
     if (n == nmax_) return;
@@ -161,26 +172,14 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
 
 void LightTracer::connect(SurfaceInteraction si, const Shape& shape, const Color& flux,
                           std::vector<LightSplat>& out, Stats& st) const {
-  const Camera& cam = scene_.camera;
   const Vec3 wl = si.wi;   // toward the last chain vertex
   const Vec3 to_cam = cam_o_ - si.p;
   const float dist = glm::length(to_cam);
   if (!(dist > 0.f)) return;
   const Vec3 wc = to_cam / dist;
-  // film position (generate_ray inverted): local x left, y up, z forward
-  const Vec4 q = to_local_ * Vec4(si.p, 1.f);
-  if (!(q.z > 0.f)) return;
-  // the camera ray's clip distances are along the optical axis, in the
-  // camera's local units (Camera::generate_ray)
-  if (q.z < cam.near_clip || q.z > cam.far_clip) return;
-  const float X = q.x / q.z, Y = q.y / q.z;
-  const float fx = 0.5f * (1.f - X / cam.tan_half_x) * float(cam.width);
-  const float fy = 0.5f * (1.f - Y / cam.tan_half_y) * float(cam.height);
-  if (!(fx >= 0.f && fy >= 0.f)) return;
-  const int px = int(std::floor(fx)) - cam.crop_x, py = int(std::floor(fy)) - cam.crop_y;
-  if (px < 0 || py < 0 || px >= cam.crop_w || py >= cam.crop_h) return;
-  const float cos_c = glm::dot(cam_fwd_, -wc);
-  if (!(cos_c > 0.f)) return;
+  uint32_t pixel = 0;
+  float cos_c = 0.f, t_near = 0.f;
+  if (!project(si.p, pixel, cos_c, t_near)) return;
   // the BSDF as the camera path evaluates it there: wi toward the camera
   si.wi = wc;
   const BSDFContext ctx = scene_.bsdfs.resolve(shape.bsdf, si);
@@ -194,7 +193,6 @@ void LightTracer::connect(SurfaceInteraction si, const Shape& shape, const Color
   // (world distance dist * near_clip / q.z from the pinhole), so what lies
   // nearer does not occlude
   const Vec3 org = offset_ray_origin(si.p, si.ng, wc);
-  const float t_near = dist * cam.near_clip / q.z;
   if (scene_.occluded(org, wc, 0.f, (glm::length(cam_o_ - org) - t_near) * (1.f - 1e-4f))) return;
   const double cc = double(cos_c);
   const double g = std::abs(double(glm::dot(si.ng, wc))) * inv_a_pix_ / (cos_l * cc * cc * cc * double(dist) * double(dist));
@@ -205,7 +203,75 @@ void LightTracer::connect(SurfaceInteraction si, const Shape& shape, const Color
     return;
   }
   st.lt_splats++;
-  out.push_back(LightSplat{uint32_t(py) * uint32_t(cam.crop_w) + uint32_t(px), v});
+  out.push_back(LightSplat{pixel, v});
+}
+
+bool LightTracer::project(const Vec3& p, uint32_t& pixel, float& cos_c, float& t_near) const {
+  const Camera& cam = scene_.camera;
+  // film position (generate_ray inverted): local x left, y up, z forward
+  const Vec4 q = to_local_ * Vec4(p, 1.f);
+  if (!(q.z > 0.f)) return false;
+  // the camera ray's clip distances are along the optical axis, in the
+  // camera's local units (Camera::generate_ray)
+  if (q.z < cam.near_clip || q.z > cam.far_clip) return false;
+  const float X = q.x / q.z, Y = q.y / q.z;
+  const float fx = 0.5f * (1.f - X / cam.tan_half_x) * float(cam.width);
+  const float fy = 0.5f * (1.f - Y / cam.tan_half_y) * float(cam.height);
+  if (!(fx >= 0.f && fy >= 0.f)) return false;
+  const int px = int(std::floor(fx)) - cam.crop_x, py = int(std::floor(fy)) - cam.crop_y;
+  if (px < 0 || py < 0 || px >= cam.crop_w || py >= cam.crop_h) return false;
+  const Vec3 to_cam = cam_o_ - p;
+  const float dist = glm::length(to_cam);
+  cos_c = glm::dot(cam_fwd_, -to_cam / dist);
+  if (!(cos_c > 0.f)) return false;
+  // the camera ray starts at the near plane: world distance dist * near / q.z
+  // from the pinhole; what lies nearer does not occlude
+  t_near = dist * cam.near_clip / q.z;
+  pixel = uint32_t(py) * uint32_t(cam.crop_w) + uint32_t(px);
+  return true;
+}
+
+void LightTracer::connect_chain(SurfaceInteraction si, const Shape& shape, const Color& flux,
+                                const std::string& tau_l, PCG32& rng, std::vector<LightSplat>& out,
+                                Stats& st) const {
+  const Vec3 wl = si.wi;
+  ManifoldChain chain;
+  Color w(0.f);
+  st.lt_chain_tries++;
+  if (!chains_.connect_point(DVec3(si.p), DVec3(si.ng), DVec3(cam_o_), mmax_cam_, rng, st, chain, w)) return;
+  // the photon's light chain must be one the estimator owns behind m camera-side vertices
+  if (!chains_.owns(uint32_t(chain.v.size()), max_depth_, tau_l)) return;
+  const Vec3 last = Vec3(chain.v.back().p), ng_last = Vec3(chain.v.back().ng);
+  uint32_t pixel = 0;
+  float cos_c = 0.f, t_near = 0.f;
+  if (!project(last, pixel, cos_c, t_near)) return;
+  const Vec3 to_cam = cam_o_ - last;
+  const Vec3 wc = glm::normalize(to_cam);
+  st.shadow_rays++;
+  const Vec3 org = offset_ray_origin(last, ng_last, wc);
+  if (scene_.occluded(org, wc, 0.f, (glm::length(cam_o_ - org) - t_near) * (1.f - 1e-4f))) return;
+  // x_D's BSDF toward the chain's first vertex, as the camera path evaluates it
+  const Vec3 wD = glm::normalize(Vec3(chain.v.front().p) - si.p);
+  si.wi = wD;
+  const BSDFContext ctx = scene_.bsdfs.resolve(shape.bsdf, si);
+  if (!ctx.leaf) return;
+  const Color f = scene_.bsdfs.eval(ctx, wD, wl);
+  if (is_black(f)) return;
+  const double cos_l = std::abs(double(glm::dot(si.ng, wl)));
+  if (!(cos_l > 0.0)) return;
+  const double cc = double(cos_c);
+  // w = kappa G_cam K / P(m), G_cam = |d omega_c / dA_D| in place of the direct |cos(n_g, w_c)| / d^2
+  const double g = inv_a_pix_ / (cos_l * cc * cc * cc);
+  Color v(0.f);
+  for (int c = 0; c < 3; ++c) v[c] = float(double(flux[c]) * double(f[c]) * double(w[c]) * g);
+  if (!(std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z)) || v.x < 0.f || v.y < 0.f || v.z < 0.f) {
+    st.lt_rejected++;
+    return;
+  }
+  if (is_black(v)) return;
+  st.lt_splats++;
+  st.lt_chain_splats++;
+  out.push_back(LightSplat{pixel, v});
 }
 
 }  // namespace mpg

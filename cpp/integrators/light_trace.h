@@ -52,9 +52,15 @@ class LightTracer {
   // Built for a chain estimator at a given max_depth (the path tracer's). usable()
   // false (with why()) when the scene gives it nothing to do or it cannot
   // take the estimator's paths exactly.
-  LightTracer(const Scene& scene, const ChainEstimator& chains, int max_depth);
+  // through: also connect each photon's x_D to the camera through chains
+  // (camera_chain_max(); sms_star and mpg only).
+  LightTracer(const Scene& scene, const ChainEstimator& chains, int max_depth, bool through = false);
   bool usable() const { return usable_; }
   const Scene& scene() const { return scene_; }
+  // The longest camera-side chain a photon is connected through (0: none):
+  // the camera path's separators behind at most that many chain vertices
+  // leave their point/spot-light chains to the photons as well.
+  int camera_chain_max() const { return mmax_cam_; }
   const std::string& why() const { return why_; }
   // One photon: emitted, traced through chain vertices, splatted (at most one
   // splat appended). Draws from rng only.
@@ -65,11 +71,20 @@ class LightTracer {
   // the camera connection and its splat.
   void connect(SurfaceInteraction si, const Shape& shape, const Color& flux, std::vector<LightSplat>& out,
                Stats& st) const;
+  // ... through a chain to the camera (ChainEstimator::connect_point), for
+  // the light chain of letters tau_l (x_D -> x_L order).
+  void connect_chain(SurfaceInteraction si, const Shape& shape, const Color& flux, const std::string& tau_l,
+                     PCG32& rng, std::vector<LightSplat>& out, Stats& st) const;
+  // The pixel (crop index) the camera sees the point p in, with the cosine of
+  // its direction to the optical axis and the world distance at which the
+  // camera ray starts (the near clip); false outside the crop or the clip range.
+  bool project(const Vec3& p, uint32_t& pixel, float& cos_c, float& t_near) const;
   const Scene& scene_;
   const ChainEstimator& chains_;
   bool usable_ = false;
   std::string why_;
   int nmax_ = 0;
+  int mmax_cam_ = 0;
   uint32_t max_depth_ = 0;
   std::vector<int> lights_;          // point and spot chain lights
   DiscreteDistribution light_dist_;  // by power

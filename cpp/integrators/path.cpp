@@ -32,6 +32,11 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   bool tail_ok = false;
   // every BSDF sample so far delta (PathParams::camera_delta)
   bool delta_prefix = true;
+  // ... and every vertex so far a chain vertex (a delta lobe, no null
+  // interface): a separator behind them is one the light tracer's photons
+  // reach through a camera-side chain (LightTracer::camera_chain_max)
+  bool chain_prefix = true;
+  const int lt_cam = lt_ ? lt_->camera_chain_max() : 0;
   const bool cd_only = mode == PathParams::CameraDelta::Only;
   const bool cd_exclude = mode == PathParams::CameraDelta::Exclude;
   const bool cd_all = mode == PathParams::CameraDelta::All;
@@ -216,8 +221,9 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       } else if (q >= 1.f || rng.next_float() < q) {
         ChainEstimator::PathDensities dens;
         dens.want_g = seps == 0;
-        // the camera's first hit: its chains to point/spot lights are the light tracer's
-        st.chain_skip_delta_lights = lt_ && depth == 0;
+        // the camera's first hit, or a separator behind at most lt_cam chain
+        // vertices: its chains to point/spot lights are the light tracer's
+        st.chain_skip_delta_lights = lt_ && (depth == 0 || (chain_prefix && int(depth) <= lt_cam));
         const Color X = beta * chains_->estimate(si, ctx, depth, max_depth, rng, st, beta, trace_alt ? &dens : nullptr);
         st.chain_skip_delta_lights = false;
         L += X * (1.f / q);
@@ -253,6 +259,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       if (cd_only) break;  // the rest of this path is Exclude's
       delta_prefix = false;
     }
+    chain_prefix = chain_prefix && chain_vertex && bs.delta && !bs.null;
     beta *= bs.weight;
     eta *= bs.eta;
     if (chains_) {

@@ -38,6 +38,10 @@ struct PathParams {
   // chains to it from the camera's first hits are light traced instead of
   // estimated.
   float light_trace = 0.f;
+  // ... and connect each photon to the camera through chains of the chain
+  // shapes too (sms_star, mpg), so that a caustic seen in the glass is light
+  // traced as well (LightTracer::camera_chain_max)
+  bool light_trace_through = false;
 };
 
 // With a ChainEstimator (integrators `sms` and `sms_star`) every separator also
@@ -49,7 +53,7 @@ class PathIntegrator : public Integrator {
       : p_(p), chains_(std::move(chains)) {
     if (chains_ && !chains_->active()) chains_.reset();  // effects follow the scene
     if (chains_ && p_.light_trace > 0.f && p_.camera_delta != PathParams::CameraDelta::Only) {
-      auto lt = std::make_shared<LightTracer>(chains_->scene(), *chains_, p_.max_depth);
+      auto lt = std::make_shared<LightTracer>(chains_->scene(), *chains_, p_.max_depth, p_.light_trace_through);
       if (lt->usable()) lt_ = std::move(lt);
       else lt_off_ = lt->why();
     }

@@ -350,7 +350,7 @@ static SurfaceInteraction vertex_interaction(const ManifoldChain& c, size_t i) {
   return si;
 }
 
-Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau, bool flux) const {
+Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau, bool flux, double* eta2) const {
   // Product of the specular lobes' weights seen from x_D toward x_L, with the
   // path tracer's conventions (Fresnel, textures, 1/eta^2 radiance scaling).
   // flux (a point or spot light): without the radiance scaling. G is then the
@@ -362,6 +362,7 @@ Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau, bool
   // when x_D and the light sit in the same medium (the factors cancel); a
   // light inside glass over a floor outside differs by eta^2 (test_light_trace).
   Color k(1.f);
+  if (eta2) *eta2 = 1.0;
   const size_t n = c.v.size();
   for (size_t i = 0; i < n; ++i) {
     const ManifoldVertex& v = c.v[i];
@@ -394,6 +395,7 @@ Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau, bool
         lobe = scene_.bsdfs.tex(b.specular_reflectance, v.uv) * fresnel_conductor(std::abs(wim), b.eta_c, b.k_c);
       } else {
         const DielectricFresnel f = fresnel_dielectric(wim, b.eta);
+        if (eta2 && tau[i] != 'R') *eta2 *= double(f.eta_ti) * double(f.eta_ti);
         lobe = tau[i] == 'R' ? scene_.bsdfs.tex(b.specular_reflectance, v.uv) * f.F
                              : scene_.bsdfs.tex(b.specular_transmittance, v.uv) *
                                    ((1.f - f.F) * (flux ? 1.f : f.eta_ti * f.eta_ti));
@@ -406,6 +408,7 @@ Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau, bool
       k *= scene_.bsdfs.tex(b.specular_reflectance, v.uv) * fresnel_conductor(ci, b.eta_c, b.k_c);
     } else if (b.type == BSDFType::Dielectric) {
       const DielectricFresnel f = fresnel_dielectric(ci, b.eta);
+      if (eta2 && tau[i] != 'R') *eta2 *= double(f.eta_ti) * double(f.eta_ti);
       if (tau[i] == 'R') k *= scene_.bsdfs.tex(b.specular_reflectance, v.uv) * f.F;
       else k *= scene_.bsdfs.tex(b.specular_transmittance, v.uv) * ((1.f - f.F) * (flux ? 1.f : f.eta_ti * f.eta_ti));
     } else {
@@ -1011,6 +1014,37 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
   // + 1: an estimate's own work (light sample, leaf query, G, the light's shadow ray)
   st.chain_steps += st.walk_steps - steps0 + 1;
   return result;
+}
+
+bool ChainEstimator::connect_point(const DVec3& xD, const DVec3& nD, const DVec3& xP, int mmax, PCG32& rng,
+                                   Stats& st, ManifoldChain& chain, Color& weight) const {
+  if (!active_ || p_.mode != ChainParams::Mode::SmsStar || mmax < 1) return false;
+  LightPoint lp;
+  lp.p = xP;
+  lp.n = DVec3(0.0, 1.0, 0.0);   // (unused for a point)
+  lp.value = Color(1.f);
+  lp.pdf = 1.0;
+  lp.point = true;
+  const int m = sample_n(rng.next_float(), mmax);
+  const double pm = pmf_n(m, mmax);
+  thread_local std::vector<Vec2> offsets;
+  offsets.resize(size_t(m));
+  for (auto& o : offsets) o = Vec2(rng.next_float(), rng.next_float());
+  std::string tau;
+  if (!trial(xD, nD, lp, m, offsets, nullptr, rng, chain, tau, st)) return false;
+  double G = 0.0;
+  if (!walk_.geometry_point(chain, G) || !(G > 0.0)) return false;
+  // The lobes' plain weights (reciprocal), then the radiance's scaling toward
+  // xP, (eta_P / eta_D)^2: the inverse of kappa's product from x_D toward x_L.
+  double eta2 = 1.0;
+  Color kap = kappa(chain, tau, true, &eta2);
+  if (is_black(kap) || !(eta2 > 0.0)) return false;
+  const DVec3 w_star = glm::normalize(chain.v[0].p - xD);
+  bool capped = false;
+  const int K = mis_rounds(xD, nD, lp, m, offsets, nullptr, tau, w_star, 1.0, rng, st, capped);
+  if (capped) st.bernoulli_capped++;
+  weight = kap * float(G * double(K) / (pm * eta2));
+  return std::isfinite(weight.x) && std::isfinite(weight.y) && std::isfinite(weight.z);
 }
 
 uint64_t ChainEstimator::trace_photons(uint64_t count, uint64_t seed,

@@ -154,6 +154,19 @@ class ChainEstimator {
     if (!leaf) return !p_.selective;
     return !p_.known_types || leaf->has_type(int(tau.size()), tau_bits(tau.data(), int(tau.size())));
   }
+  // A chain from x_D (normal nD) to the point xP (the camera's pinhole, for
+  // the light tracer) through the chain shapes, as sms_star seeds it (x_1
+  // uniform on the chain shapes, letters by Fresnel, no guide), its length m
+  // from the initial law truncated at mmax (SmsStar mode only). On success:
+  // the chain (x_D -> xP order), m, and the weight kappa G K / P(m) of the
+  // radiance leaving x_D toward chain.v[0] as it arrives at xP: kappa the
+  // lobes' weights with the radiance scaling toward xP, G = |d omega_P / dA_D|
+  // (geometry_point), K the Bernoulli count of 1/P (supplemental Sec. 3.2).
+  // The last segment's visibility is the caller's.
+  bool connect_point(const DVec3& xD, const DVec3& nD, const DVec3& xP, int mmax, PCG32& rng, Stats& st,
+                     ManifoldChain& chain, Color& weight) const;
+  bool sms_star_mode() const { return p_.mode == ChainParams::Mode::SmsStar; }
+  int max_chain() const { return p_.max_chain; }
   // The longest chain estimated at a separator of loop depth `depth` (0: the
   // camera's first hit) under max_depth (-1 as uint32: unbounded).
   int max_chain_len(uint32_t depth, uint32_t max_depth) const { return max_len(depth, max_depth); }
@@ -287,7 +300,8 @@ class ChainEstimator {
              const std::vector<Vec2>& offsets, const ChainDistribution* guide, PCG32& rng,
              ManifoldChain& chain, std::string& tau, Stats& st,
              TrialTally* tally = nullptr, const std::string* want_tau = nullptr) const;
-  Color kappa(const ManifoldChain& chain, const std::string& tau, bool flux = false) const;
+  // (eta2: if given, the product of the transmissions' (eta_i / eta_t)^2 from x_D toward x_L)
+  Color kappa(const ManifoldChain& chain, const std::string& tau, bool flux = false, double* eta2 = nullptr) const;
   // The leaf of (x_D, x_L), or null (no guide, or an empty leaf).
   const ChainDistribution* guide_at(const Vec3& xD, const Vec3& xL, Stats* st) const;
   // P(n) of the estimator at a leaf (Eq. 13's mixture; the initial law without a leaf).

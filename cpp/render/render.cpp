@@ -410,6 +410,7 @@ void RenderJob::light_trace(std::vector<Stats>& stats, int nthreads) {
       _MM_SET_FLUSH_ZERO_MODE(_MM_FLUSH_ZERO_ON);
       _MM_SET_DENORMALS_ZERO_MODE(_MM_DENORMALS_ZERO_ON);
       Stats& st = stats[size_t(tid)];
+      st.cancel = &cancel_;   // (the Bernoulli trials of camera-side chains poll it)
       for (;;) {
         if (cancel_.load(std::memory_order_relaxed)) return;
         const int j = next.fetch_add(1);

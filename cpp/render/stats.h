@@ -194,6 +194,7 @@ struct Stats {
   // light tracing (integrators/light_trace.h)
   uint64_t chain_lt_skipped = 0;     // chain estimates whose point/spot light the light tracer takes (value 0)
   uint64_t lt_photons = 0, lt_rays = 0, lt_splats = 0;
+  uint64_t lt_chain_tries = 0, lt_chain_splats = 0;   // connections to the camera through glass (light_trace_through)
   uint64_t lt_rejected = 0;          // splats not finite or negative (dropped, counted)
   uint64_t guided_traces = 0;        // handoff_guided: traces drawn from a leaf in rate-0 pixels (and training's records)
   uint64_t guided_trace_hits = 0;    // ... that reached their light through the drawn letters
@@ -232,6 +233,7 @@ struct Stats {
     chain_handed += o.chain_handed;
     chain_lt_skipped += o.chain_lt_skipped;
     lt_photons += o.lt_photons; lt_rays += o.lt_rays; lt_splats += o.lt_splats; lt_rejected += o.lt_rejected;
+    lt_chain_tries += o.lt_chain_tries; lt_chain_splats += o.lt_chain_splats;
     guided_traces += o.guided_traces;
     trace_rays += o.trace_rays;
     trace_lobes += o.trace_lobes;
@@ -268,6 +270,7 @@ struct Stats {
             {"chain_lt_skipped", double(chain_lt_skipped)},
             {"lt_photons", double(lt_photons)}, {"lt_rays", double(lt_rays)},
             {"lt_splats", double(lt_splats)}, {"lt_rejected", double(lt_rejected)},
+            {"lt_chain_tries", double(lt_chain_tries)}, {"lt_chain_splats", double(lt_chain_splats)},
             {"guided_traces", double(guided_traces)},
             {"guided_trace_hits", double(guided_trace_hits)},
             {"subpath_samples", double(subpaths.size())},
