@@ -234,7 +234,7 @@ GuideConfig guide_config(float c, float epsilon, int max_depth, int threads, con
 
 // mpg's default photons per camera sample (docs/results.md, "Light tracing
 // the point lights' caustics")
-constexpr float kMpgLightTrace = 1.f;
+constexpr float kMpgLightTrace = 0.25f;
 constexpr bool kMpgLightTraceThrough = true;
 
 std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, const std::string& type,
