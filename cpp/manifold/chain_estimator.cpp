@@ -398,7 +398,7 @@ Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau, bool
         if (eta2 && tau[i] != 'R') *eta2 *= double(f.eta_ti) * double(f.eta_ti);
         lobe = tau[i] == 'R' ? scene_.bsdfs.tex(b.specular_reflectance, v.uv) * f.F
                              : scene_.bsdfs.tex(b.specular_transmittance, v.uv) *
-                                   ((1.f - f.F) * (flux ? 1.f : f.eta_ti * f.eta_ti));
+                                   (flux ? (1.f - f.F) : (1.f - f.F) * f.eta_ti * f.eta_ti);
       }
       k *= lobe * (G * std::abs(wim) / (cos_i * cos_m));
       continue;
@@ -410,7 +410,7 @@ Color ChainEstimator::kappa(const ManifoldChain& c, const std::string& tau, bool
       const DielectricFresnel f = fresnel_dielectric(ci, b.eta);
       if (eta2 && tau[i] != 'R') *eta2 *= double(f.eta_ti) * double(f.eta_ti);
       if (tau[i] == 'R') k *= scene_.bsdfs.tex(b.specular_reflectance, v.uv) * f.F;
-      else k *= scene_.bsdfs.tex(b.specular_transmittance, v.uv) * ((1.f - f.F) * (flux ? 1.f : f.eta_ti * f.eta_ti));
+      else k *= scene_.bsdfs.tex(b.specular_transmittance, v.uv) * (flux ? (1.f - f.F) : (1.f - f.F) * f.eta_ti * f.eta_ti);
     } else {
       return Color(0.f);
     }
