@@ -28,7 +28,7 @@ LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int m
   light_dist_.build(w);
   // The camera's first hits: a depth-0 separator as the path tracer counts it.
   max_depth_ = uint32_t(max_depth);
-  nmax_ = std::min(chains.max_chain_len(0, max_depth_), 32);
+  nmax_ = chains.max_chain_len(0, max_depth_);
   if (nmax_ < 1) {
     why_ = "max_depth leaves no room for a chain after the camera's first hit";
     return;
@@ -36,7 +36,7 @@ LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int m
   if (!chains.chain_shapes_smooth()) {
     // A glossy chain vertex would need the adjoint of its rough BSDF and the
     // estimator's offset normals; not done: the estimator keeps those paths.
-    why_ = "a chain shape is glossy (only smooth glass and mirrors are light traced)";
+    why_ = "a chain shape is glossy or normal-mapped (only smooth glass and mirrors are light traced)";
     return;
   }
   const Camera& cam = scene.camera;
@@ -119,7 +119,8 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
   Vec3 o = xL;
   Vec3 prev_ng(0.f);
   int n = 0;
-  char letters[32];   // light -> x_D order (n <= nmax_ <= max_chain)
+  thread_local std::string letters;   // light -> x_D order (n <= nmax_ <= max_chain)
+  letters.clear();
   for (;;) {
     const Vec3 org = n == 0 ? o : offset_ray_origin(o, prev_ng, d);
     st.lt_rays++;
@@ -135,8 +136,7 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
       if (ctx.leaf->is_delta() || n == 0) return;
       // only the chains the estimator would own at the camera's first hit
       // (sms: its one type), the letters in x_D -> x_L order
-      std::string tau(letters, letters + n);
-      std::reverse(tau.begin(), tau.end());
+      std::string tau(letters.rbegin(), letters.rend());
       const size_t before = out.size();
       if (chains_.owns(0, max_depth_, tau)) connect(si, shape, flux, out, st);   // x_D seen directly
       if (mmax_cam_ > 0) connect_chain(si, shape, flux, tau, rng, out, st);     // ... or through glass
@@ -163,7 +163,8 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
     const float den = std::abs(glm::dot(si.ng, wl) * glm::dot(ctx.frame.n, wo));
     if (!(den > 0.f)) return;
     flux *= wgt * (num / den);
-    letters[n++] = bs.transmission ? 'T' : 'R';
+    letters.push_back(bs.transmission ? 'T' : 'R');
+    ++n;
     o = si.p;
     prev_ng = si.ng;
     d = wo;

@@ -15,9 +15,13 @@
 // to point and spot lights (Stats::chain_skip_delta_lights), and the photons
 // of this tracer bring exactly those paths: light -> 1..nmax chain vertices
 // (the estimator's chain shapes and BSDFs) -> separator x_D -> camera, nmax as
-// the estimator's at depth 0, of the types it owns there (sms: its one). The path tracer never reaches a delta light, so
-// nothing else produces them. Deeper separators (x_D seen through glass) stay
-// the estimator's: a photon cannot reach the camera through delta scattering.
+// the estimator's at depth 0, of the types it owns there (sms: its one). The
+// path tracer never reaches a delta light, so nothing else produces them.
+// Separators seen through glass stay the estimator's, unless `through`: then
+// each photon is also connected to the pinhole by a camera-side chain of
+// 1..camera_chain_max() vertices (ChainEstimator::connect_point), and the
+// camera path's separators behind that many chain vertices leave their
+// point-light chains to the photons too (path.cpp, chain_prefix).
 //
 // Splat of a photon at x_D with flux weight Phi (intensity / direction pdf
 // times the chain's discrete weights), x_D at distance d from the pinhole c,

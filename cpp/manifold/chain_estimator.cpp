@@ -63,6 +63,14 @@ bool specular_node(const BSDFSet& b, int id, float glossy_threshold) {
            b.nodes[size_t(n.nested)].type == BSDFType::Conductor;
   return false;
 }
+// A normal map at the node or under its two sides (the light tracer declines those).
+bool has_normal_map(const BSDFSet& b, int id) {
+  if (id < 0) return false;
+  const BSDF& n = b.nodes[size_t(id)];
+  if (n.type == BSDFType::NormalMap) return true;
+  if (n.type == BSDFType::TwoSided) return has_normal_map(b, n.front) || has_normal_map(b, n.back);
+  return false;
+}
 }  // namespace
 
 ChainEstimator::ChainEstimator(const Scene& scene, ChainParams p)
@@ -78,7 +86,8 @@ ChainEstimator::ChainEstimator(const Scene& scene, ChainParams p)
     if (specular_node(scene.bsdfs, scene.shapes[i].bsdf, p.walk.glossy_threshold) && scene.shapes[i].emitter < 0 &&
         !(scene.shapes[i].caustic_receiver && !specular_node(scene.bsdfs, scene.shapes[i].bsdf, 0.f))) {
       specular_shape_[i] = 1;
-      if (!specular_node(scene.bsdfs, scene.shapes[i].bsdf, 0.f)) chain_shapes_smooth_ = false;
+      if (!specular_node(scene.bsdfs, scene.shapes[i].bsdf, 0.f) || has_normal_map(scene.bsdfs, scene.shapes[i].bsdf))
+        chain_shapes_smooth_ = false;
       seed_shapes_.push_back(int(i));
       areas.push_back(scene.shapes[i].area);
     }
@@ -946,8 +955,11 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     }
     double scale = G * double(K) / (a + b);
     if (lp.point) {
-      // Irradiance I kappa G; f already carries |cos theta_D|, which G contains too.
-      const float cosD = std::abs(glm::dot(wD, si.sh.n));
+      // Irradiance I kappa G, G = |d omega_L / dA_D| with the geometric
+      // cosine at x_D; f carries the shading frame's |cos theta_D|, so the
+      // radiance is f_s |cos_s| E / |cos_g| (as next-event estimation's f I / d^2
+      // and the light tracer's splat; the same for a flat receiver).
+      const float cosD = std::abs(glm::dot(wD, si.ng));
       if (!(cosD > 0.f)) break;
       scale /= double(cosD);
     }

@@ -171,7 +171,8 @@ class ChainEstimator {
   // camera's first hit) under max_depth (-1 as uint32: unbounded).
   int max_chain_len(uint32_t depth, uint32_t max_depth) const { return max_len(depth, max_depth); }
   // Every chain shape smooth (its BSDF a chain node at glossy threshold 0: no
-  // glossy chain vertex), as the light tracer needs (integrators/light_trace.h).
+  // glossy chain vertex) and without a normal map, as the light tracer needs
+  // (integrators/light_trace.h).
   bool chain_shapes_smooth() const { return chain_shapes_smooth_; }
   // Is shape `s` a surface the walk accepts as a specular vertex?
   bool is_chain_shape(int s) const { return specular_shape_[size_t(s)] != 0; }
