@@ -437,6 +437,18 @@ def _fresnel(ci, eta):
     return 0.5 * (rs * rs + rp * rp)
 
 
+def swept_solid_angle(direction, p, h=1e-4):
+    """|d omega / dA| at the point p of the floor y = 0: the solid angle the
+    unit vector direction(p) sweeps per unit area around p, by central
+    differences along x and z."""
+    cols = []
+    for k in (0, 2):
+        dv = np.zeros(3)
+        dv[k] = h
+        cols.append((direction(p + dv) - direction(p - dv)) / (2 * h))
+    return abs(np.cross(cols[0], cols[1]) @ direction(p))
+
+
 def test_point_light_through_a_glass_slab_closed_form():
     """A point light above a slab with parallel faces (n = 2, TT), seen from
     above through the slab. Expected pixel value (max_depth 6 leaves only this
@@ -474,13 +486,7 @@ def test_point_light_through_a_glass_slab_closed_form():
             Fc = _fresnel(c, eta)
             T_cam = (1 - Fc) ** 2
             w = _slab_path(p, xL, y0, y1, eta)
-            hh = 1e-4
-            cols = []
-            for k in (0, 2):
-                dv = np.zeros(3)
-                dv[k] = hh
-                cols.append((_slab_path(p + dv, xL, y0, y1, eta) - _slab_path(p - dv, xL, y0, y1, eta)) / (2 * hh))
-            G = abs(np.cross(cols[0], cols[1]) @ w)
+            G = swept_solid_angle(lambda q: _slab_path(q, xL, y0, y1, eta), p)
             F = _fresnel(w[1], eta)
             exp[j, i] = T_cam * rho / np.pi * I * (1 - F) ** 2 * G
     got = img.rgb[..., 0].astype(np.float64)

@@ -12,7 +12,7 @@ import pytest
 
 import mpg
 from test_chains import (SLAB_POINT, _fresnel, mirror_expected, mirror_scene, spot_mirror_expected,
-                         spot_mirror_scene)
+                         spot_mirror_scene, swept_solid_angle)
 from test_manifold import _slab_path
 
 
@@ -40,6 +40,40 @@ def test_light_traced_mirror_caustic_matches_the_closed_form(which, integ):
     assert np.all(a[~lit] < 1e-3)
 
 
+def pixel_means(radiance, o, target, up, res=8, sub=4, fov=30.0):
+    """Each pixel's mean of radiance(d) over sub x sub sub-pixel rays d (unit)
+    of a camera at o looking at target (Mitsuba's lookat frame and film: x
+    right, y down)."""
+    fwd = (target - o) / np.linalg.norm(target - o)
+    left = np.cross(up, fwd)
+    left /= np.linalg.norm(left)
+    upv = np.cross(fwd, left)
+    t = np.tan(np.radians(fov / 2))
+    out = np.zeros((res, res))
+    for j in range(res):
+        for i in range(res):
+            acc = 0.0
+            for sj in range(sub):
+                for si in range(sub):
+                    fx, fy = i + (si + 0.5) / sub, j + (sj + 0.5) / sub
+                    d = fwd - left * (2 * fx / res - 1) * t - upv * (2 * fy / res - 1) * t
+                    acc += radiance(d / np.linalg.norm(d))
+            out[j, i] = acc / sub**2
+    return out
+
+
+def floor_below_refraction(o, d, eta, y_top, y_bottom):
+    """Where the ray o + t d, refracted into a medium of index eta between
+    y_top and y_bottom (flat faces), meets the floor y = 0 (air below
+    y_bottom when y_bottom > 0), and cos(theta) in the air above."""
+    c = -d[1]
+    s = np.sqrt(1 - c * c)
+    sw = s / eta
+    h = np.array([d[0], 0, d[2]]) / max(s, 1e-12)
+    horiz = s / c * ((o[1] - y_top) + y_bottom) + sw / np.sqrt(1 - sw * sw) * (y_top - y_bottom)
+    return np.array([o[0], 0.0, o[2]]) + h * horiz, c
+
+
 # The slab of test_chains seen from below it: the camera sees the floor
 # directly, the point light's light reaches it through the slab (TT).
 SLAB_BELOW = SLAB_POINT.replace('<integer name="max_depth" value="6"/>', '<integer name="max_depth" value="4"/>').replace(
@@ -53,33 +87,15 @@ def _slab_below_expected(res=8, sub=4, fov=30.0):
     sub-pixel ray (parallel faces: omega_L = -omega_D; max_depth 4 leaves only
     TT; the slab shadows the light's direct light), averaged per pixel."""
     eta, y0, y1, I, rho = 1.5, 0.75, 1.25, 10.0, 0.5
-    xL = np.array([0.0, 2.5, 0.0])
-    o, target, up = np.array([0.9, 0.5, 1.4]), np.array([0.6, 0.0, 0.2]), np.array([0.0, 1.0, 0.0])
-    fwd = (target - o) / np.linalg.norm(target - o)
-    left = np.cross(up, fwd)
-    left /= np.linalg.norm(left)
-    upv = np.cross(fwd, left)
-    t = np.tan(np.radians(fov / 2))
-    exp = np.zeros((res, res))
-    for j in range(res):
-        for i in range(res):
-            acc = 0.0
-            for sj in range(sub):
-                for si in range(sub):
-                    fx, fy = i + (si + 0.5) / sub, j + (sj + 0.5) / sub
-                    d = fwd - left * (2 * fx / res - 1) * t - upv * (2 * fy / res - 1) * t
-                    p = o + d * (-o[1] / d[1])
-                    w = _slab_path(p, xL, y0, y1, eta)
-                    hh = 1e-4
-                    cols = []
-                    for k in (0, 2):
-                        dv = np.zeros(3)
-                        dv[k] = hh
-                        cols.append((_slab_path(p + dv, xL, y0, y1, eta) - _slab_path(p - dv, xL, y0, y1, eta)) / (2 * hh))
-                    G = abs(np.cross(cols[0], cols[1]) @ w)
-                    acc += rho / np.pi * I * (1 - _fresnel(w[1], eta)) ** 2 * G
-            exp[j, i] = acc / sub**2
-    return exp
+    xL, o = np.array([0.0, 2.5, 0.0]), np.array([0.9, 0.5, 1.4])
+
+    def radiance(d):
+        p = o + d * (-o[1] / d[1])
+        w = _slab_path(p, xL, y0, y1, eta)
+        G = swept_solid_angle(lambda q: _slab_path(q, xL, y0, y1, eta), p)
+        return rho / np.pi * I * (1 - _fresnel(w[1], eta)) ** 2 * G
+
+    return pixel_means(radiance, o, np.array([0.6, 0.0, 0.2]), np.array([0.0, 1.0, 0.0]), res, sub, fov)
 
 
 @pytest.mark.parametrize("lt", [0, 64])
@@ -114,39 +130,19 @@ def _slab_inside_expected(res=8, sub=4, fov=30.0):
     glass at the light (flux through the interface is conserved: no eta^2),
     from the 1D solution of the path with the slab's top put at the light."""
     eta, y0, yl, I, rho = 1.5, 0.75, 1.0, 10.0, 0.5
-    xL = np.array([0.0, yl, 0.0])
-    o, target, up = np.array([0.9, 0.5, 1.4]), np.array([0.6, 0.0, 0.2]), np.array([0.0, 1.0, 0.0])
-    fwd = (target - o) / np.linalg.norm(target - o)
-    left = np.cross(up, fwd)
-    left /= np.linalg.norm(left)
-    upv = np.cross(fwd, left)
-    t = np.tan(np.radians(fov / 2))
+    xL, o = np.array([0.0, yl, 0.0]), np.array([0.9, 0.5, 1.4])
 
     def glass_dir(p):   # the direction in the glass, toward the light
         w = _slab_path(p, xL, y0, yl, eta)
         h = np.array([w[0], 0.0, w[2]]) / eta
-        return h + np.array([0.0, np.sqrt(1 - h @ h), 0.0]), w
+        return h + np.array([0.0, np.sqrt(1 - h @ h), 0.0])
 
-    exp = np.zeros((res, res))
-    for j in range(res):
-        for i in range(res):
-            acc = 0.0
-            for sj in range(sub):
-                for si in range(sub):
-                    fx, fy = i + (si + 0.5) / sub, j + (sj + 0.5) / sub
-                    d = fwd - left * (2 * fx / res - 1) * t - upv * (2 * fy / res - 1) * t
-                    p = o + d * (-o[1] / d[1])
-                    u, w = glass_dir(p)
-                    hh = 1e-4
-                    cols = []
-                    for k in (0, 2):
-                        dv = np.zeros(3)
-                        dv[k] = hh
-                        cols.append((glass_dir(p + dv)[0] - glass_dir(p - dv)[0]) / (2 * hh))
-                    G = abs(np.cross(cols[0], cols[1]) @ u)
-                    acc += rho / np.pi * I * (1 - _fresnel(w[1], eta)) * G
-            exp[j, i] = acc / sub**2
-    return exp
+    def radiance(d):
+        p = o + d * (-o[1] / d[1])
+        w = _slab_path(p, xL, y0, yl, eta)
+        return rho / np.pi * I * (1 - _fresnel(w[1], eta)) * swept_solid_angle(glass_dir, p)
+
+    return pixel_means(radiance, o, np.array([0.6, 0.0, 0.2]), np.array([0.0, 1.0, 0.0]), res, sub, fov)
 
 
 @pytest.mark.parametrize("lt", [0, 64])
@@ -182,34 +178,14 @@ def _slab_above_expected(res=8, sub=4, fov=40.0):
     averaged per pixel."""
     eta, y0, y1, I, rho = 1.5, 0.75, 1.25, 10.0, 0.5
     xL, o = np.array([0.0, 2.5, 0.0]), np.array([0.6, 5.0, 0.2])
-    t = np.tan(np.radians(fov / 2))
-    fwd, upv = np.array([0.0, -1.0, 0.0]), np.array([0.0, 0.0, -1.0])
-    left = np.cross(upv, fwd)
-    exp = np.zeros((res, res))
-    for j in range(res):
-        for i in range(res):
-            acc = 0.0
-            for sj in range(sub):
-                for si in range(sub):
-                    fx, fy = i + (si + 0.5) / sub, j + (sj + 0.5) / sub
-                    d = fwd - left * (2 * fx / res - 1) * t - upv * (2 * fy / res - 1) * t
-                    d /= np.linalg.norm(d)
-                    c = -d[1]
-                    s = np.sqrt(1 - c * c)
-                    st = s / eta
-                    h = np.array([d[0], 0, d[2]]) / max(s, 1e-12)
-                    p = np.array([o[0], 0.0, o[2]]) + h * (s / c * ((o[1] - y1) + y0) + st / np.sqrt(1 - st * st) * (y1 - y0))
-                    w = _slab_path(p, xL, y0, y1, eta)
-                    hh = 1e-4
-                    cols = []
-                    for k in (0, 2):
-                        dv = np.zeros(3)
-                        dv[k] = hh
-                        cols.append((_slab_path(p + dv, xL, y0, y1, eta) - _slab_path(p - dv, xL, y0, y1, eta)) / (2 * hh))
-                    G = abs(np.cross(cols[0], cols[1]) @ w)
-                    acc += (1 - _fresnel(c, eta)) ** 2 * rho / np.pi * I * (1 - _fresnel(w[1], eta)) ** 2 * G
-            exp[j, i] = acc / sub**2
-    return exp
+
+    def radiance(d):
+        p, c = floor_below_refraction(o, d, eta, y1, y0)
+        w = _slab_path(p, xL, y0, y1, eta)
+        G = swept_solid_angle(lambda q: _slab_path(q, xL, y0, y1, eta), p)
+        return (1 - _fresnel(c, eta)) ** 2 * rho / np.pi * I * (1 - _fresnel(w[1], eta)) ** 2 * G
+
+    return pixel_means(radiance, o, np.array([0.6, 0.0, 0.2]), np.array([0.0, 0.0, -1.0]), res, sub, fov)
 
 
 @pytest.mark.parametrize("integ,spp", [({"type": "sms", "tau": "TT"}, 64),
@@ -249,34 +225,14 @@ def _water_expected(res=8, sub=4, fov=40.0):
     bottom at the floor), omega_L in the air."""
     eta, I, rho = 1.333, 10.0, 0.5
     xL, o = np.array([0.0, 2.5, 0.0]), np.array([0.6, 5.0, 0.2])
-    t = np.tan(np.radians(fov / 2))
-    fwd, upv = np.array([0.0, -1.0, 0.0]), np.array([0.0, 0.0, -1.0])
-    left = np.cross(upv, fwd)
-    exp = np.zeros((res, res))
-    for j in range(res):
-        for i in range(res):
-            acc = 0.0
-            for sj in range(sub):
-                for si in range(sub):
-                    fx, fy = i + (si + 0.5) / sub, j + (sj + 0.5) / sub
-                    d = fwd - left * (2 * fx / res - 1) * t - upv * (2 * fy / res - 1) * t
-                    d /= np.linalg.norm(d)
-                    c = -d[1]
-                    s = np.sqrt(1 - c * c)
-                    sw = s / eta
-                    h = np.array([d[0], 0, d[2]]) / max(s, 1e-12)
-                    p = np.array([o[0], 0.0, o[2]]) + h * (s / c * (o[1] - 1.0) + sw / np.sqrt(1 - sw * sw) * 1.0)
-                    w = _slab_path(p, xL, 0.0, 1.0, eta)
-                    hh = 1e-4
-                    cols = []
-                    for k in (0, 2):
-                        dv = np.zeros(3)
-                        dv[k] = hh
-                        cols.append((_slab_path(p + dv, xL, 0.0, 1.0, eta) - _slab_path(p - dv, xL, 0.0, 1.0, eta)) / (2 * hh))
-                    G = abs(np.cross(cols[0], cols[1]) @ w)
-                    acc += (1 - _fresnel(c, eta)) / eta**2 * rho / np.pi * I * (1 - _fresnel(w[1], eta)) * G
-            exp[j, i] = acc / sub**2
-    return exp
+
+    def radiance(d):
+        p, c = floor_below_refraction(o, d, eta, 1.0, 0.0)
+        w = _slab_path(p, xL, 0.0, 1.0, eta)
+        G = swept_solid_angle(lambda q: _slab_path(q, xL, 0.0, 1.0, eta), p)
+        return (1 - _fresnel(c, eta)) / eta**2 * rho / np.pi * I * (1 - _fresnel(w[1], eta)) * G
+
+    return pixel_means(radiance, o, np.array([0.6, 0.0, 0.2]), np.array([0.0, 0.0, -1.0]), res, sub, fov)
 
 
 @pytest.mark.parametrize("integ,spp", [({"type": "sms_star"}, 512),
