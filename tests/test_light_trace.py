@@ -98,6 +98,23 @@ def _slab_below_expected(res=8, sub=4, fov=30.0):
     return pixel_means(radiance, o, np.array([0.6, 0.0, 0.2]), np.array([0.0, 1.0, 0.0]), res, sub, fov)
 
 
+def _sms_against(xml, tau, lt, seed, exp):
+    """sms with letters tau and light_trace lt (128 spp without photons, 512
+    with) against the closed form exp: every pixel and the mean within 5
+    standard errors, the mean within 2 % (3 % with photons: 2.3 % above at
+    128 spp in one run of the slab seen from below, z = 3.3; 0.4 %, z = 1.1,
+    at 2048 spp: their tails are wider than the estimator's there)."""
+    img = mpg.render(mpg.load_string(xml), integrator={"type": "sms", "tau": tau, "light_trace": lt},
+                     spp=128 if lt == 0 else 512, seed=seed, progress=False)
+    got = img.rgb[..., 0].astype(np.float64)
+    var = img.variance[..., 0].astype(np.float64)
+    assert (img.stats["lt_splats"] > 0) == (lt > 0)
+    assert np.all(np.abs(got - exp) < 5 * np.sqrt(var)), (got, exp)
+    assert abs(got.mean() - exp.mean()) / (np.sqrt(var.sum()) / got.size) < 5
+    assert abs(got.mean() / exp.mean() - 1) < (0.02 if lt == 0 else 0.03)
+    return img
+
+
 @pytest.mark.parametrize("lt", [0, 64])
 def test_slab_seen_from_below_matches_the_closed_form(lt):
     """Refraction twice (the eta^2 of the radiance-mode weights undone on the
@@ -105,19 +122,8 @@ def test_slab_seen_from_below_matches_the_closed_form(lt):
     estimator alone (lt = 0) and with the light tracer (lt = 64: the slab's
     bound holds the light, so photons leave in all directions and few land in
     the view), per pixel and for the mean."""
-    sc = mpg.load_string(SLAB_BELOW)
-    img = mpg.render(sc, integrator={"type": "sms", "tau": "TT", "light_trace": lt}, spp=128 if lt == 0 else 512,
-                     seed=2, progress=False)
-    exp = _slab_below_expected()
-    got = img.rgb[..., 0].astype(np.float64)
-    var = img.variance[..., 0].astype(np.float64)
-    assert (img.stats["lt_splats"] > 0) == (lt > 0)
+    img = _sms_against(SLAB_BELOW, "TT", lt, 2, _slab_below_expected())
     assert (img.stats["chain_contributions"] > 0) == (lt == 0)
-    assert np.all(np.abs(got - exp) < 5 * np.sqrt(var)), (got, exp)
-    assert abs(got.mean() - exp.mean()) / (np.sqrt(var.sum()) / got.size) < 5
-    # (the photons' mean: 2.3 % above at 128 spp in one run, z = 3.3; 0.4 %,
-    # z = 1.1, at 2048 spp: their tails are wider than the estimator's here)
-    assert abs(got.mean() / exp.mean() - 1) < (0.02 if lt == 0 else 0.03)
 
 
 # The same, the light inside the slab (y = 1.0 between its faces 0.75 and
@@ -153,16 +159,7 @@ def test_light_inside_the_slab_matches_the_closed_form(lt):
     estimator's lobe weights drop the radiance's 1/eta^2 for a point light
     (ChainEstimator::kappa): both match E = I (1 - F) |d omega_L / dA_D|, which
     the radiance-mode weights would put eta^2 = 2.25 too low."""
-    sc = mpg.load_string(SLAB_INSIDE)
-    img = mpg.render(sc, integrator={"type": "sms", "tau": "T", "light_trace": lt}, spp=128 if lt == 0 else 512,
-                     seed=4, progress=False)
-    exp = _slab_inside_expected()
-    got = img.rgb[..., 0].astype(np.float64)
-    var = img.variance[..., 0].astype(np.float64)
-    assert (img.stats["lt_splats"] > 0) == (lt > 0)
-    assert np.all(np.abs(got - exp) < 5 * np.sqrt(var)), (got, exp)
-    assert abs(got.mean() - exp.mean()) / (np.sqrt(var.sum()) / got.size) < 5
-    assert abs(got.mean() / exp.mean() - 1) < (0.02 if lt == 0 else 0.03)
+    _sms_against(SLAB_INSIDE, "T", lt, 4, _slab_inside_expected())
 
 
 # test_chains' slab seen from above, with a wider view and a slab of 8 x 8
@@ -188,6 +185,18 @@ def _slab_above_expected(res=8, sub=4, fov=40.0):
     return pixel_means(radiance, o, np.array([0.6, 0.0, 0.2]), np.array([0.0, 0.0, -1.0]), res, sub, fov)
 
 
+def _render_through(xml, integ, spp, seed, exp):
+    """Render; with light_trace_through the photons' camera-side chains bring
+    the light (more than 10 splats a pixel) and no estimate contributes,
+    without it the estimator does. Returns the red channel, its variance and exp."""
+    img = mpg.render(mpg.load_string(xml), integrator=integ, spp=spp, seed=seed, progress=False)
+    got = img.rgb[..., 0].astype(np.float64)
+    through = integ.get("light_trace_through", False)
+    assert (img.stats["lt_chain_splats"] > 10 * got.size) == through
+    assert (img.stats["chain_contributions"] == 0) == through
+    return got, img.variance[..., 0].astype(np.float64), exp
+
+
 @pytest.mark.parametrize("integ,spp", [({"type": "sms", "tau": "TT"}, 64),
                                        ({"type": "sms_star", "light_trace": 64, "light_trace_through": True}, 256)])
 def test_slab_seen_from_above_matches_the_closed_form(integ, spp):
@@ -196,14 +205,7 @@ def test_slab_seen_from_above_matches_the_closed_form(integ, spp):
     camera-side chain (light_trace_through: ChainEstimator::connect_point,
     kappa G K / P(m) with G = |d omega_c / dA_D|), which then takes those
     separators' point-light chains whole (no estimate contributes)."""
-    sc = mpg.load_string(SLAB_ABOVE)
-    img = mpg.render(sc, integrator=integ, spp=spp, seed=1, progress=False)
-    exp = _slab_above_expected()
-    got = img.rgb[..., 0].astype(np.float64)
-    var = img.variance[..., 0].astype(np.float64)
-    through = integ.get("light_trace_through", False)
-    assert (img.stats["lt_chain_splats"] > 10 * got.size) == through
-    assert (img.stats["chain_contributions"] == 0) == through
+    got, var, exp = _render_through(SLAB_ABOVE, integ, spp, 1, _slab_above_expected())
     assert np.all(np.abs(got - exp) < 5 * np.sqrt(var)), (got, exp)
     assert abs(got.mean() - exp.mean()) / (np.sqrt(var.sum()) / got.size) < 5
     assert abs(got.mean() / exp.mean() - 1) < 0.03
@@ -246,16 +248,9 @@ def test_floor_under_water_matches_the_closed_form(integ, spp):
     its uniform seeds on the water box rarely find the surface's chain (about
     one sample in 24 contributes), so many pixels have no contribution and no
     variance (measured: mean 6 % high, z = 1.0)."""
-    sc = mpg.load_string(WATER)
-    img = mpg.render(sc, integrator=integ, spp=spp, seed=3, progress=False)
-    exp = _water_expected()
-    got = img.rgb[..., 0].astype(np.float64)
-    var = img.variance[..., 0].astype(np.float64)
-    through = integ.get("light_trace_through", False)
-    assert (img.stats["lt_chain_splats"] > 10 * got.size) == through
-    assert (img.stats["chain_contributions"] == 0) == through
+    got, var, exp = _render_through(WATER, integ, spp, 3, _water_expected())
     assert abs(got.mean() - exp.mean()) / (np.sqrt(var.sum()) / got.size) < 5
-    if through:
+    if integ.get("light_trace_through", False):
         assert np.all(np.abs(got - exp) < 5 * np.sqrt(var)), (got, exp)
         assert abs(got.mean() / exp.mean() - 1) < 0.03
     else:   # (either side's eta^2 wrong would be 1.78x off)
