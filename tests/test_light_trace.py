@@ -371,3 +371,13 @@ def test_mpg_light_traces_its_final_render_only(scenes_dir):
     assert st["lt_chain_splats"] > 0   # (light_trace_through: the ball's focus seen in the ball)
     assert st["lt_splats"] > 0 and st["chain_lt_skipped"] > 0 and st["rejected_samples"] == 0
     assert np.isfinite(img.rgb).all()
+
+
+def test_mpg_render_reports_the_photons(tmp_path, capsys, scenes_dir):
+    from mpg.cli import main
+
+    rc = main([str(scenes_dir / "eval" / "sphere_point.xml"), "-D", "res=16", "--spp", "8", "--integrator", "mpg",
+               "-o", str(tmp_path / "a.exr"), "--no-preview"])
+    assert rc == 0 and (tmp_path / "a.exr").exists()
+    err = capsys.readouterr().err
+    assert "light traced the point/spot lights' caustics" in err and "through glass" in err
