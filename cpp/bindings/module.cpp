@@ -665,7 +665,6 @@ PYBIND11_MODULE(_core, m) {
         auto* p = dynamic_cast<const PathIntegrator*>(&i);
         return p != nullptr && p->chains_delta_lights();
       })
-      .def_property_readonly("light_tracing", [](const Integrator& i) { return i.light_tracer() != nullptr; })
       .def_property_readonly("light_trace_off", [](const Integrator& i) {
         // why light_trace > 0 runs no light tracer ("" when it runs or was not asked)
         auto* p = dynamic_cast<const PathIntegrator*>(&i);

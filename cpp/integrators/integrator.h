@@ -29,11 +29,9 @@ class Integrator {
   // than the delta part of a sample's own camera path (render.cpp then leaves
   // that part out of a split pixel's mean).
   virtual bool delta_branched() const { return false; }
-  // The light tracer of the point lights' caustics at the camera's first hit
-  // (integrators/light_trace.h) and its photons per camera sample, or null:
-  // each render pass then also traces rate x spp x crop pixels photons.
+  // The light tracer of the point lights' caustics (integrators/light_trace.h),
+  // or null: each render pass then also traces its photons.
   virtual const LightTracer* light_tracer() const { return nullptr; }
-  virtual float light_trace_rate() const { return 0.f; }
 };
 
 }  // namespace mpg

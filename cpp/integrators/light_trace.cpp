@@ -5,8 +5,9 @@
 
 namespace mpg {
 
-LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int max_depth, bool through)
-    : scene_(scene), chains_(chains) {
+LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int max_depth, bool through,
+                         float photons_per_sample)
+    : scene_(scene), chains_(chains), rate_(photons_per_sample) {
   if (!chains.active()) {
     why_ = "the scene runs no chain estimator";
     return;
@@ -171,9 +172,8 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
   }
 }
 
-void LightTracer::connect(SurfaceInteraction si, const Shape& shape, const Color& flux,
+void LightTracer::connect(const SurfaceInteraction& si, const Shape& shape, const Color& flux,
                           std::vector<LightSplat>& out, Stats& st) const {
-  const Vec3 wl = si.wi;   // toward the last chain vertex
   const Vec3 to_cam = cam_o_ - si.p;
   const float dist = glm::length(to_cam);
   if (!(dist > 0.f)) return;
@@ -181,30 +181,41 @@ void LightTracer::connect(SurfaceInteraction si, const Shape& shape, const Color
   uint32_t pixel = 0;
   float cos_c = 0.f, t_near = 0.f;
   if (!project(si.p, pixel, cos_c, t_near)) return;
-  // the BSDF as the camera path evaluates it there: wi toward the camera
-  si.wi = wc;
+  // G = |d omega_c / dA_D| = |cos(n_g, w_c)| / d^2
+  const double G = std::abs(double(glm::dot(si.ng, wc))) / (double(dist) * double(dist));
+  splat(si, shape, wc, si.p, si.ng, t_near, Color(float(G)), flux, pixel, cos_c, out, st);
+}
+
+bool LightTracer::splat(SurfaceInteraction si, const Shape& shape, const Vec3& w_out, const Vec3& from,
+                        const Vec3& from_ng, float t_near, const Color& G, const Color& flux, uint32_t pixel,
+                        float cos_c, std::vector<LightSplat>& out, Stats& st) const {
+  const Vec3 wl = si.wi;   // toward the photon's last chain vertex
+  // the BSDF as the camera path evaluates it at x_D: wi toward the camera side
+  si.wi = w_out;
   const BSDFContext ctx = scene_.bsdfs.resolve(shape.bsdf, si);
-  if (!ctx.leaf) return;
-  const Color f = scene_.bsdfs.eval(ctx, wc, wl);   // f_s(w_c, w_l) |cos(n_s, w_l)|
-  if (is_black(f)) return;
+  if (!ctx.leaf) return false;
+  const Color f = scene_.bsdfs.eval(ctx, w_out, wl);   // f_s(w_out, w_l) |cos(n_s, w_l)|
+  if (is_black(f)) return false;
   const double cos_l = std::abs(double(glm::dot(si.ng, wl)));
-  if (!(cos_l > 0.0)) return;
-  st.shadow_rays++;
+  if (!(cos_l > 0.0)) return false;
   // visible as the camera ray sees it: that ray starts at the near plane
-  // (world distance dist * near_clip / q.z from the pinhole), so what lies
-  // nearer does not occlude
-  const Vec3 org = offset_ray_origin(si.p, si.ng, wc);
-  if (scene_.occluded(org, wc, 0.f, (glm::length(cam_o_ - org) - t_near) * (1.f - 1e-4f))) return;
+  // (world distance t_near from the pinhole), so what lies nearer does not occlude
+  st.shadow_rays++;
+  const Vec3 wc = glm::normalize(cam_o_ - from);
+  const Vec3 org = offset_ray_origin(from, from_ng, wc);
+  if (scene_.occluded(org, wc, 0.f, (glm::length(cam_o_ - org) - t_near) * (1.f - 1e-4f))) return false;
   const double cc = double(cos_c);
-  const double g = std::abs(double(glm::dot(si.ng, wc))) * inv_a_pix_ / (cos_l * cc * cc * cc * double(dist) * double(dist));
+  const double g = inv_a_pix_ / (cos_l * cc * cc * cc);
   Color v(0.f);
-  for (int c = 0; c < 3; ++c) v[c] = float(double(flux[c]) * double(f[c]) * g);
+  for (int c = 0; c < 3; ++c) v[c] = float(double(flux[c]) * double(f[c]) * double(G[c]) * g);
   if (!(std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z)) || v.x < 0.f || v.y < 0.f || v.z < 0.f) {
     st.lt_rejected++;
-    return;
+    return false;
   }
+  if (is_black(v)) return false;
   st.lt_splats++;
   out.push_back(LightSplat{pixel, v});
+  return true;
 }
 
 bool LightTracer::project(const Vec3& p, uint32_t& pixel, float& cos_c, float& t_near) const {
@@ -232,47 +243,24 @@ bool LightTracer::project(const Vec3& p, uint32_t& pixel, float& cos_c, float& t
   return true;
 }
 
-void LightTracer::connect_chain(SurfaceInteraction si, const Shape& shape, const Color& flux,
+void LightTracer::connect_chain(const SurfaceInteraction& si, const Shape& shape, const Color& flux,
                                 const std::string& tau_l, PCG32& rng, std::vector<LightSplat>& out,
                                 Stats& st) const {
-  const Vec3 wl = si.wi;
   ManifoldChain chain;
   Color w(0.f);
   st.lt_chain_tries++;
   if (!chains_.connect_point(DVec3(si.p), DVec3(si.ng), DVec3(cam_o_), mmax_cam_, rng, st, chain, w)) return;
   // the photon's light chain must be one the estimator owns behind m camera-side vertices
   if (!chains_.owns(uint32_t(chain.v.size()), max_depth_, tau_l)) return;
-  const Vec3 last = Vec3(chain.v.back().p), ng_last = Vec3(chain.v.back().ng);
+  const Vec3 last = Vec3(chain.v.back().p);
   uint32_t pixel = 0;
   float cos_c = 0.f, t_near = 0.f;
   if (!project(last, pixel, cos_c, t_near)) return;
-  const Vec3 to_cam = cam_o_ - last;
-  const Vec3 wc = glm::normalize(to_cam);
-  st.shadow_rays++;
-  const Vec3 org = offset_ray_origin(last, ng_last, wc);
-  if (scene_.occluded(org, wc, 0.f, (glm::length(cam_o_ - org) - t_near) * (1.f - 1e-4f))) return;
-  // x_D's BSDF toward the chain's first vertex, as the camera path evaluates it
+  // x_D's BSDF toward the chain's first vertex; w = kappa G_c K / P(m) with
+  // G_c = |d omega_c / dA_D| in place of the direct view's |cos(n_g, w_c)| / d^2
   const Vec3 wD = glm::normalize(Vec3(chain.v.front().p) - si.p);
-  si.wi = wD;
-  const BSDFContext ctx = scene_.bsdfs.resolve(shape.bsdf, si);
-  if (!ctx.leaf) return;
-  const Color f = scene_.bsdfs.eval(ctx, wD, wl);
-  if (is_black(f)) return;
-  const double cos_l = std::abs(double(glm::dot(si.ng, wl)));
-  if (!(cos_l > 0.0)) return;
-  const double cc = double(cos_c);
-  // w = kappa G_cam K / P(m), G_cam = |d omega_c / dA_D| in place of the direct |cos(n_g, w_c)| / d^2
-  const double g = inv_a_pix_ / (cos_l * cc * cc * cc);
-  Color v(0.f);
-  for (int c = 0; c < 3; ++c) v[c] = float(double(flux[c]) * double(f[c]) * double(w[c]) * g);
-  if (!(std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z)) || v.x < 0.f || v.y < 0.f || v.z < 0.f) {
-    st.lt_rejected++;
-    return;
-  }
-  if (is_black(v)) return;
-  st.lt_splats++;
-  st.lt_chain_splats++;
-  out.push_back(LightSplat{pixel, v});
+  if (splat(si, shape, wD, last, Vec3(chain.v.back().ng), t_near, w, flux, pixel, cos_c, out, st))
+    st.lt_chain_splats++;
 }
 
 }  // namespace mpg

@@ -58,9 +58,13 @@ class LightTracer {
   // take the estimator's paths exactly.
   // through: also connect each photon's x_D to the camera through chains
   // (camera_chain_max(); sms_star and mpg only).
-  LightTracer(const Scene& scene, const ChainEstimator& chains, int max_depth, bool through = false);
+  LightTracer(const Scene& scene, const ChainEstimator& chains, int max_depth, bool through = false,
+              float photons_per_sample = 1.f);
   bool usable() const { return usable_; }
   const Scene& scene() const { return scene_; }
+  // Photons per camera sample (PathParams::light_trace): each render pass
+  // traces this times its spp times the crop's pixels.
+  float photons_per_sample() const { return rate_; }
   // The longest camera-side chain a photon is connected through (0: none):
   // the camera path's separators behind at most that many chain vertices
   // leave their point/spot-light chains to the photons as well.
@@ -71,14 +75,22 @@ class LightTracer {
   void trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) const;
 
  private:
-  // The photon's flux arriving at separator x_D (si, its wi toward the chain):
-  // the camera connection and its splat.
-  void connect(SurfaceInteraction si, const Shape& shape, const Color& flux, std::vector<LightSplat>& out,
+  // The photon's flux arriving at separator x_D (si, its wi toward the chain)
+  // seen directly: the camera connection and its splat.
+  void connect(const SurfaceInteraction& si, const Shape& shape, const Color& flux, std::vector<LightSplat>& out,
                Stats& st) const;
   // ... through a chain to the camera (ChainEstimator::connect_point), for
   // the light chain of letters tau_l (x_D -> x_L order).
-  void connect_chain(SurfaceInteraction si, const Shape& shape, const Color& flux, const std::string& tau_l,
+  void connect_chain(const SurfaceInteraction& si, const Shape& shape, const Color& flux, const std::string& tau_l,
                      PCG32& rng, std::vector<LightSplat>& out, Stats& st) const;
+  // Both connections' splat: x_D's BSDF toward w_out (the camera or the
+  // camera-side chain) against the photon's direction, the camera's view of
+  // the point `from` (normal from_ng) unoccluded past the near plane, and
+  // flux f / |cos(n_g, w_l)| G / (A_pix cos^3 theta_c), G the solid angle at
+  // the camera per unit area at x_D (times the chain's weights). false: none.
+  bool splat(SurfaceInteraction si, const Shape& shape, const Vec3& w_out, const Vec3& from, const Vec3& from_ng,
+             float t_near, const Color& G, const Color& flux, uint32_t pixel, float cos_c,
+             std::vector<LightSplat>& out, Stats& st) const;
   // The pixel (crop index) the camera sees the point p in, with the cosine of
   // its direction to the optical axis and the world distance at which the
   // camera ray starts (the near clip); false outside the crop or the clip range.
@@ -87,6 +99,7 @@ class LightTracer {
   const ChainEstimator& chains_;
   bool usable_ = false;
   std::string why_;
+  float rate_ = 1.f;
   int nmax_ = 0;
   int mmax_cam_ = 0;
   uint32_t max_depth_ = 0;

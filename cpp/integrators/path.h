@@ -53,13 +53,13 @@ class PathIntegrator : public Integrator {
       : p_(p), chains_(std::move(chains)) {
     if (chains_ && !chains_->active()) chains_.reset();  // effects follow the scene
     if (chains_ && p_.light_trace > 0.f && p_.camera_delta != PathParams::CameraDelta::Only) {
-      auto lt = std::make_shared<LightTracer>(chains_->scene(), *chains_, p_.max_depth, p_.light_trace_through);
+      auto lt = std::make_shared<LightTracer>(chains_->scene(), *chains_, p_.max_depth, p_.light_trace_through,
+                                              p_.light_trace);
       if (lt->usable()) lt_ = std::move(lt);
       else lt_off_ = lt->why();
     }
   }
   const LightTracer* light_tracer() const override { return lt_.get(); }
-  float light_trace_rate() const override { return lt_ ? p_.light_trace : 0.f; }
   // Why light_trace > 0 runs no light tracer ("" when it runs or was not asked)
   const std::string& light_trace_off() const { return lt_off_; }
   bool chains_active() const { return chains_ != nullptr; }

@@ -23,7 +23,7 @@ RenderJob::RenderJob(std::shared_ptr<const Scene> scene, std::shared_ptr<const I
   if (lt && &lt->scene() != scene_.get())
     throw std::invalid_argument("the integrator's light tracer was made for another scene");
   if (lt && cfg_.light_trace && !cfg_.record_costs) {
-    const double n = double(integrator_->light_trace_rate()) * double(cfg_.spp) * double(c.crop_w) * double(c.crop_h);
+    const double n = double(lt->photons_per_sample()) * double(cfg_.spp) * double(c.crop_w) * double(c.crop_h);
     lt_photons_ = uint64_t(std::llround(std::max(1.0, n)));
     lt_blocks_ = int((lt_photons_ + kLtBlock - 1) / kLtBlock);
   }
