@@ -159,6 +159,44 @@ def test_disk_light_on_axis_irradiance():
     assert zscore_region(img, expected, np.s_[6:10, 6:10]) < 5
 
 
+@pytest.mark.parametrize("integ", ["path", "sms_star"])
+def test_small_area_light_far_off_axis_is_not_self_shadowed(integ):
+    """A small light (0.2 x 0.2, facing down at height 1) lighting floor points
+    2-3 units away, coordinates above 1: the shadow ray starts 1e-4 * |p| off
+    the floor, and along the direction from the unshifted point it met the
+    light's plane short of the sampled point by more than the shadow margin,
+    so the light shadowed itself there (black pixels until 2026-12-04, where
+    Mitsuba 3 lights them). Pixel values against rho/pi * Le * int dA / r^4
+    (cos_l = cos_p = 1/r), midpoint rule over 16 x 16 nodes, |z| < 5."""
+    Le, rho = 20.0, 0.5
+    xml = f"""<scene version="3.0.0"><integrator type="path"><integer name="max_depth" value="2"/></integrator>
+      <sensor type="perspective"><float name="fov" value="30"/>
+        <transform name="to_world"><lookat origin="-1.4, 4, 0" target="-1.4, 0, 0" up="0, 0, -1"/></transform>
+        <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/>
+        <rfilter type="box"/></film></sensor>
+      <shape type="rectangle"><transform name="to_world"><scale value="10"/><rotate x="1" angle="-90"/></transform>
+        <bsdf type="diffuse"><rgb name="reflectance" value="{rho}"/></bsdf></shape>
+      <shape type="rectangle"><transform name="to_world"><scale value="0.1"/><rotate x="1" angle="90"/>
+        <translate x="0.8" y="1" z="1"/></transform><bsdf type="diffuse"><rgb name="reflectance" value="0"/></bsdf>
+        <emitter type="area"><rgb name="radiance" value="{Le}"/></emitter></shape></scene>"""
+    img = mpg.render(mpg.load_string(xml), integrator=integ, spp=256, seed=2, progress=False)
+    # the floor point of each sub-pixel (camera at height 4 over x = -1.4, up = -z)
+    t = np.tan(np.radians(15))
+    sub = 8
+    s = ((np.arange(8)[:, None] + (np.arange(sub) + 0.5)[None, :] / sub).ravel() * 2 / 8 - 1) * t * 4
+    X, Z = np.meshgrid(s - 1.4, s)
+    q = (np.arange(16) + 0.5) / 16 * 0.2 - 0.1
+    E = np.zeros_like(X)
+    for qx in q:
+        for qz in q:
+            E += Le * (0.2 / 16) ** 2 / ((X - 0.8 - qx) ** 2 + 1 + (Z - 1 - qz) ** 2) ** 2
+    exp = (rho / np.pi * E).reshape(8, sub, 8, sub).mean(axis=(1, 3))
+    a = img.rgb[..., 0].astype(np.float64)
+    z = (a - exp) / np.sqrt(img.variance[..., 0].astype(np.float64))
+    assert np.abs(z).max() < 5, np.abs(z).max()
+    assert a.min() > 0.5 * exp.min()   # (the self-shadowed pixels were 0)
+
+
 def test_bit_identical_across_thread_counts():
     sc = mpg.load_file(mpg.default_scene_path(), res_x="48", res_y="32")
     a = mpg.render(sc, spp=8, threads=1, seed=3, progress=False)

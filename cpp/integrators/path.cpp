@@ -188,10 +188,23 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       if (es.pdf > 0.f && !is_black(es.value)) {
         const Color f = scene.bsdfs.eval(ctx, si.wi, es.wi);
         if (!is_black(f)) {
+          // The shadow ray runs from the offset origin to the light's point
+          // itself (not along es.wi, which starts at si.p): along es.wi it
+          // would cross an area light's plane short of es.p by about the
+          // offset / cos, more than the relative margin below when the
+          // offset (1e-4 of the coordinates' size) is large against the
+          // distance, and the light would shadow itself.
           const Vec3 org = offset_ray_origin(si.p, si.ng, es.wi);
-          const float dist = std::isinf(es.dist) ? kInf : glm::length(es.p - org) * (1.f - 1e-4f);
+          Vec3 sdir = es.wi;
+          float dist = kInf;
+          if (!std::isinf(es.dist)) {
+            const Vec3 to_l = es.p - org;
+            const float len = glm::length(to_l);
+            sdir = len > 0.f ? to_l / len : es.wi;
+            dist = len * (1.f - 1e-4f);
+          }
           st.shadow_rays++;
-          if (!scene.occluded(org, es.wi, 0.f, dist)) {
+          if (!scene.occluded(org, sdir, 0.f, dist)) {
             const float w = es.delta ? 1.f : power_heuristic(es.pdf, scene.bsdfs.pdf(ctx, si.wi, es.wi));
             L += beta * f * es.value * (w / es.pdf);
           }
