@@ -380,7 +380,8 @@ def test_bad_chain_rate_settings_are_clear_errors(scenes_dir):
 def _trained_guide(sc, spp=64, seed=5):
     """A guide from one recording pass of the estimator at every separator."""
     core = sc.core
-    job = _core.RenderJob(core, _core.make_integrator(core, "mpg", {"record": True, "chain_rate": 1.0}),
+    job = _core.RenderJob(core, _core.make_integrator(core, "mpg", {"record": True, "chain_rate": 1.0,
+                                                                          "light_trace_area": False}),
                           spp, seed, 0, 0)
     while not job.wait(0.05):
         pass
@@ -406,7 +407,7 @@ def test_the_guided_trace_of_handed_pixels_keeps_the_image_unbiased(scenes_dir, 
     qmap = np.exp(rng.uniform(np.log(0.05), 0.0, (24, 24))).astype(np.float32)
     qmap[rng.random((24, 24)) < 0.5] = 0.0
     ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
-    img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": k},
+    img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": k, "light_trace_area": False},
                      spp=1024, seed=13, progress=False, chain_rate_map=qmap)
     st = img.stats
     assert st["chain_handed"] > 0 and st["guided_traces"] > 0
@@ -420,7 +421,7 @@ def test_the_guided_trace_is_off_by_default_and_outside_rate_zero(scenes_dir):
     image is the one without the option, bit for bit."""
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
     guide = _trained_guide(sc, spp=16)
-    base = {"type": "mpg", "guide": guide, "chain_rate": 1.0}
+    base = {"type": "mpg", "guide": guide, "chain_rate": 1.0, "light_trace_area": False}
     half = np.full((16, 16), 0.5, np.float32)
     zero = np.zeros((16, 16), np.float32)
     a = mpg.render(sc, integrator=base, spp=8, seed=3, progress=False, chain_rate_map=half)
@@ -471,7 +472,7 @@ def test_a_per_pixel_count_of_guided_traces_keeps_the_image_unbiased(scenes_dir)
     qmap[rng.random((24, 24)) < 0.5] = 0.0
     kmap = rng.choice(np.array([0, 1, 2, 5], np.float32), size=(24, 24))
     ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
-    img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": 4},
+    img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": 4, "light_trace_area": False},
                      spp=1024, seed=13, progress=False, chain_rate_map=qmap, guided_trace_map=kmap)
     st = img.stats
     assert st["guided_traces"] > 0 and st["guided_trace_hits"] > 0.01 * st["guided_traces"]
@@ -481,12 +482,12 @@ def test_a_per_pixel_count_of_guided_traces_keeps_the_image_unbiased(scenes_dir)
     five = np.where(kmap == 5, 5, 0).astype(np.float32)
     one = np.where(kmap == 5, 1, 0).astype(np.float32)
     zero = np.zeros((24, 24), np.float32)
-    t = [mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": 1},
+    t = [mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": 1, "light_trace_area": False},
                     spp=4, seed=3, progress=False, chain_rate_map=zero, guided_trace_map=m).stats["guided_traces"]
          for m in (five, one)]
     assert t[1] > 0 and t[0] == pytest.approx(5 * t[1], rel=0.1)
     with pytest.raises(mpg.RenderError, match="guided_trace_map"):
-        mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": 1},
+        mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": 1, "light_trace_area": False},
                    spp=1, progress=False, chain_rate_map=zero, guided_trace_map=np.full((24, 24), 65, np.float32))
 
 
@@ -527,7 +528,7 @@ def test_training_records_the_guided_trace_forms_of_rate_zero(scenes_dir):
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
     guide = _trained_guide(sc)
     ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
-    params = {"guide": guide, "chain_rate": 0.25, "handoff_guided": 3}
+    params = {"guide": guide, "chain_rate": 0.25, "handoff_guided": 3, "light_trace_area": False}
     n = 1024
     r = run_pass(sc, "mpg", n, 19, params, record_costs=True)
     assert _sums_z(r["sum"], r["sum_sq"], n, ref) < 5
@@ -554,7 +555,7 @@ def test_training_records_the_guided_trace_forms_of_rate_zero(scenes_dir):
             y2 = rv[f"trace{k}_sum_sq"] / ntv[..., None]
             mse_y = (y2 - 2 * ys * mean + mean * mean).mean(axis=2)
             predicted += float(np.sum(mse_y + (1 / k - 1 / 2) * rv[f"trace{k}_var"] / ntv))
-            img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": k},
+            img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": k, "light_trace_area": False},
                              spp=nv, seed=29 + 100 * s, progress=False, chain_rate_map=zero,
                              guided_trace_map=np.full((24, 24), k, np.float32))
             measured += float(np.sum(img.variance.mean(axis=2))) * nv   # per-sample variance, summed over pixels
@@ -591,7 +592,7 @@ def test_the_chains_sample_the_rate_zero_forms_second_moments(scenes_dir, rate):
     guide = _trained_guide(sc)
     tails, seen = [], []
     for seed in range(16):
-        r = run_pass(sc, "mpg", 512, 100 + seed, {"guide": guide, "chain_rate": rate, "handoff_guided": 3,
+        r = run_pass(sc, "mpg", 512, 100 + seed, {"guide": guide, "chain_rate": rate, "handoff_guided": 3, "light_trace_area": False,
                                                    "rr_depth": 1}, record_costs=True)
         nt = np.maximum(r["trace_n"], 1.0)
         tails.append([(r[k] / nt).sum() for k in ("trace_tail0", "trace1_tail", "trace8_tail")])

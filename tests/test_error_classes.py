@@ -99,7 +99,7 @@ def _guide(sc, spp, **params):
     """A guide from one recording pass of mpg's estimator at rate 1."""
     from mpg import _core
     g = _core.GuidingState()
-    r = run_pass(sc, "mpg", spp, 5, dict(record=True, chain_rate=1.0, **params))
+    r = run_pass(sc, "mpg", spp, 5, dict(record=True, chain_rate=1.0, light_trace_area=False, **params))
     g.build_from([r["subpaths"]], *sc.core.bbox, c=1.0, epsilon=0.1, threads=2)
     return g
 
@@ -109,19 +109,20 @@ def test_guided_classes(sphere):
     separator's chain light in the traced class (later separators' in
     handed); a guide whose leaves saw only one-vertex chains (max_chain 1)
     makes the ball's TT an unseen type under known_types (the path tracer's
-    whole), and a shared one without."""
+    whole), and a shared one without. (Without area photons: they take the
+    first hits' chains these classes are about.)"""
     g = _guide(sphere, 4)
-    t = _render(sphere, {"type": "mpg", "guide": g, "handoff_guided": 2}, record_classes=True, spp=32,
+    t = _render(sphere, {"type": "mpg", "guide": g, "handoff_guided": 2, "light_trace_area": False}, record_classes=True, spp=32,
                 chain_rate_map=np.zeros((RES, RES), np.float32))
     assert t.class_sum[..., C["traced"]].sum() > 0
     for nm in ("chain", "shared", "unseen", "inactive", "unowned"):
         assert np.all(t.class_sum[..., C[nm]] == 0.0), nm
     g1 = _guide(sphere, 4, max_chain=1)
     rate = np.full((RES, RES), 0.5, np.float32)
-    kt = _render(sphere, {"type": "mpg", "guide": g1, "known_types": True}, record_classes=True, spp=64,
+    kt = _render(sphere, {"type": "mpg", "guide": g1, "known_types": True, "light_trace_area": False}, record_classes=True, spp=64,
                  chain_rate_map=rate)
     assert kt.class_sum[..., C["unseen"]].sum() > 0 and np.all(kt.class_sum[..., C["shared"]] == 0.0)
-    off = _render(sphere, {"type": "mpg", "guide": g1, "known_types": False}, record_classes=True, spp=64,
+    off = _render(sphere, {"type": "mpg", "guide": g1, "known_types": False, "light_trace_area": False}, record_classes=True, spp=64,
                   chain_rate_map=rate)
     assert np.all(off.class_sum[..., C["unseen"]] == 0.0) and off.class_sum[..., C["shared"]].sum() > 0
 
@@ -150,6 +151,8 @@ def test_mpg_records_its_final_render(sphere):
     total = img.rgb.astype(float).mean(axis=2) * img.spp
     assert np.allclose(img.class_sum.sum(axis=2), total, rtol=1e-4, atol=1e-4 * max(1.0, float(total.max())))
     assert img.class_sum[..., C["chain"]].sum() > 0
+    # the area light's photons (mpg's light_trace_area) are a class of their own
+    assert img.class_sum[..., C["photons"]].sum() > 0 and img.stats["lt_splats"] > 0
 
 
 def test_the_error_classes_script_writes_its_summary(tmp_path):

@@ -312,9 +312,10 @@ def test_light_trace_is_deterministic_and_thread_independent(scenes_dir):
     assert not np.array_equal(a.rgb, c.rgb)
 
 
-def test_area_lights_are_never_light_traced(scenes_dir):
-    """No point or spot light: no light tracer, no photon, no warning, and the
-    image is bit-identical to light_trace = 0."""
+def test_area_lights_are_light_traced_only_on_request(scenes_dir):
+    """No point or spot light and no light_trace_area (the peers' default): no
+    light tracer, no photon, no warning, and the image is bit-identical to
+    light_trace = 0."""
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
     on = mpg.render(sc, integrator={"type": "sms_star", "light_trace": 4}, spp=4, seed=1, progress=False)
     off = mpg.render(sc, integrator={"type": "sms_star"}, spp=4, seed=1, progress=False)
@@ -380,7 +381,7 @@ def test_mpg_render_reports_the_photons(tmp_path, capsys, scenes_dir):
                "-o", str(tmp_path / "a.exr"), "--no-preview"])
     assert rc == 0 and (tmp_path / "a.exr").exists()
     err = capsys.readouterr().err
-    assert "light traced the point/spot lights' caustics" in err and "through glass" in err
+    assert "light traced the caustics the camera sees" in err and "through glass" in err
 
 
 def test_a_point_and_an_area_light_keep_their_sum():
@@ -408,3 +409,91 @@ def test_a_point_and_an_area_light_keep_their_sum():
     assert on.rgb[..., 0].mean() > 1.02 * mirror_expected().mean()
     assert on.stats["rejected_samples"] == 0 and off.stats["rejected_samples"] == 0
     assert image_zmax(on, off, REGIONS_24) < 5
+
+
+def area_mirror_scene(res=24):
+    """mirror_scene's floor and mirror wall with a small area light (0.2 x 0.2,
+    radiance 20, facing down at (0.8, 1, 1), outside the view) instead of the point light."""
+    return mirror_scene(res).replace(
+        '<emitter type="point"><point name="position" x="0" y="1" z="0"/><rgb name="intensity" value="3"/></emitter>',
+        '<shape type="rectangle"><transform name="to_world"><scale value="0.1"/><rotate x="1" angle="90"/>'
+        '<translate x="0.8" y="1" z="1"/></transform><bsdf type="diffuse"><rgb name="reflectance" value="0"/></bsdf>'
+        '<emitter type="area"><rgb name="radiance" value="20"/></emitter></shape>')
+
+
+def area_mirror_expected(res=24, sub=6, nq=8, image=True):
+    """rho/pi * E, E the irradiance from the light and its image in the mirror
+    x = 1 (reflected across it): Le * int cos_l cos_p / r^2 dA = Le * int dA / r^4
+    for a light facing straight down at height 1 (cos_l = cos_p = 1 / r),
+    by the midpoint rule over nq x nq nodes of the light."""
+    t = np.tan(np.radians(15))
+    off = (np.arange(sub) + 0.5) / sub
+    px = (np.arange(res)[:, None] + off[None, :]).ravel()
+    s = (2 * px / res - 1) * t
+    X, Z = np.meshgrid(s * 4 - 0.4, s * 4)
+    q = (np.arange(nq) + 0.5) / nq * 0.2 - 0.1
+    dA = (0.2 / nq) ** 2
+    E = np.zeros_like(X)
+    for qx in q:
+        for qz in q:
+            for lx in (0.8 + qx, 2.0 - (0.8 + qx))[:2 if image else 1]:   # the light and its mirror image
+                r2 = (X - lx) ** 2 + 1 + (Z - (1 + qz)) ** 2
+                E += 20.0 * dA / r2**2
+    return (0.5 / np.pi * E).reshape(res, sub, res, sub).mean(axis=(1, 3))
+
+
+@pytest.mark.parametrize("integ", [{"type": "sms", "tau": "R"}, {"type": "sms_star"}])
+def test_light_traced_area_light_mirror_matches_the_closed_form(integ):
+    """light_trace_area: the area light's caustic in the mirror comes from the
+    photons only; the estimator skips its chains at the camera's first hits and
+    the path tracer drops its BSDF-sampled paths through the mirror to the
+    light (lt_pt_dropped). Every pixel and the image mean match the closed form."""
+    sc = mpg.load_string(area_mirror_scene())
+    exp = area_mirror_expected()
+    img = mpg.render(sc, integrator=dict(integ, light_trace=16, light_trace_area=True), spp=64, seed=3,
+                     progress=False)
+    st = img.stats
+    assert st["lt_splats"] > 10 * 24 * 24 and st["chain_lt_skipped"] > 0 and st["lt_pt_dropped"] > 0
+    assert st["chain_contributions"] == 0 and st["rejected_samples"] == 0 and st["lt_rejected"] == 0
+    a = img.rgb[..., 0].astype(np.float64)
+    var = img.variance[..., 0].astype(np.float64)
+    z = (a - exp) / np.sqrt(var)
+    assert np.abs(z).max() < 5, np.abs(z).max()
+    assert abs(a.mean() - exp.mean()) / (np.sqrt(var.sum()) / a.size) < 5
+    # (the test's power: the mirror's part, photons only here, is a third of the light or more)
+    assert area_mirror_expected(image=False).mean() < 0.75 * exp.mean()
+
+
+def test_mpg_light_traces_area_lights_by_default(scenes_dir):
+    """mpg's default light_trace_area: on the glass ball under an area light
+    its final render traces light_trace (0.25) x spp x pixels photons, the
+    estimator skips the area light's chains at the camera's first hits and the
+    path tracer drops its paths through the ball to the light there; the
+    image is finite and nothing is rejected. (Unbiasedness: test_guiding's
+    mpg renders against the path tracer run with this default.)"""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
+    img = mpg.render(sc, integrator="mpg", spp=32, seed=1, progress=False)
+    st = img.stats
+    assert st["lt_photons"] == round(0.25 * img.spp * 24 * 24)
+    assert st["lt_splats"] > 0 and st["chain_lt_skipped"] > 0 and st["lt_pt_dropped"] > 0
+    assert st["lt_chain_splats"] == 0   # (an area light's photons are not connected through glass)
+    assert st["rejected_samples"] == 0 and st["lt_rejected"] == 0 and np.isfinite(img.rgb).all()
+    off = mpg.render(sc, integrator={"type": "mpg", "light_trace_area": False}, spp=32, seed=1, progress=False)
+    assert off.stats["lt_photons"] == 0 and off.stats["chain_lt_skipped"] == 0
+
+
+def test_area_light_tracing_asked_for_where_it_cannot_run_warns():
+    """light_trace_area asked for with a glossy mirror (no adjoint of a rough
+    chain vertex): a warning names why and the estimator keeps the area light;
+    mpg's default asks nothing, so it does not warn there."""
+    glossy = area_mirror_scene().replace(
+        '<bsdf type="conductor"><string name="material" value="none"/></bsdf>',
+        '<bsdf type="roughconductor"><string name="material" value="none"/><float name="alpha" value="0.05"/></bsdf>')
+    sc = mpg.load_string(glossy)
+    img = mpg.render(sc, integrator={"type": "sms_star", "light_trace": 4, "light_trace_area": True}, spp=8,
+                     seed=1, progress=False)
+    warn = [w for w in img.stats["warnings"] if "light_trace is off" in w]
+    assert len(warn) == 1 and "glossy" in warn[0] and "area" in warn[0], img.stats["warnings"]
+    assert img.stats["lt_photons"] == 0 and img.stats["chain_contributions"] > 0
+    m = mpg.render(sc, integrator="mpg", spp=8, seed=1, progress=False)
+    assert not any("light_trace is off" in w for w in m.stats["warnings"])

@@ -236,6 +236,7 @@ GuideConfig guide_config(float c, float epsilon, int max_depth, int threads, con
 // the point lights' caustics")
 constexpr float kMpgLightTrace = 0.25f;
 constexpr bool kMpgLightTraceThrough = true;
+constexpr bool kMpgLightTraceArea = true;
 
 std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, const std::string& type,
                                             const py::dict& p) {
@@ -256,6 +257,7 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
   // photons per camera sample (chain integrators; mpg light traces by default)
   pp.light_trace = get<float>(p, "light_trace", type == "mpg" ? kMpgLightTrace : 0.f);
   pp.light_trace_through = get<bool>(p, "light_trace_through", type == "mpg" ? kMpgLightTraceThrough : false);
+  pp.light_trace_area = get<bool>(p, "light_trace_area", type == "mpg" ? kMpgLightTraceArea : false);
   if (!(pp.light_trace >= 0.f && pp.light_trace <= 64.f))
     throw std::invalid_argument("light_trace must be in [0, 64] photons per camera sample, got " +
                                 std::to_string(pp.light_trace));

@@ -6,8 +6,8 @@
 namespace mpg {
 
 LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int max_depth, bool through,
-                         float photons_per_sample)
-    : scene_(scene), chains_(chains), rate_(photons_per_sample) {
+                         float photons_per_sample, bool area)
+    : scene_(scene), chains_(chains), rate_(photons_per_sample), area_(area) {
   if (!chains.active()) {
     why_ = "the scene runs no chain estimator";
     return;
@@ -15,15 +15,17 @@ LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int m
   std::vector<float> w;
   for (size_t e = 0; e < scene.emitters.size(); ++e) {
     const Emitter& em = scene.emitters[e];
-    // the estimator's chain lights that are delta positions (chain_estimator.cpp)
-    if ((em.type == Emitter::Type::Point || em.type == Emitter::Type::Spot) && em.power > 0.f &&
-        std::isfinite(em.power)) {
+    // the estimator's chain lights (chain_estimator.cpp): delta positions,
+    // and with area_ the area lights
+    const bool kind = em.type == Emitter::Type::Point || em.type == Emitter::Type::Spot ||
+                      (area_ && em.type == Emitter::Type::Area && em.shape >= 0);
+    if (kind && em.power > 0.f && std::isfinite(em.power)) {
       lights_.push_back(int(e));
       w.push_back(em.power);
     }
   }
   if (lights_.empty()) {
-    why_ = "the scene has no point or spot light";
+    why_ = area_ ? "the scene has no point, spot or area light" : "the scene has no point or spot light";
     return;
   }
   light_dist_.build(w);
@@ -90,7 +92,18 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
   const size_t k = light_dist_.sample(u);
   const Emitter& em = scene_.emitters[size_t(lights_[k])];
   const double psel = light_dist_.pmf(k);
-  const Vec3 xL = em.position;
+  // The emission point: the point light's position, or uniform by area on the
+  // area light's shape (density 1 / A), emitting Le toward its geometric
+  // normal's side (Scene::emitted)
+  const bool is_area = em.type == Emitter::Type::Area;
+  Vec3 xL = em.position, nL(0.f);
+  double pdf_pos = 1.0;
+  if (is_area) {
+    const Shape& ls = scene_.shapes[size_t(em.shape)];
+    ls.sample_position(Vec2(rng.next_float(), rng.next_float()), xL, nL);
+    if (!(ls.area > 0.f)) return;
+    pdf_pos = 1.0 / double(ls.area);
+  }
   // Direction: uniform in the cone around the chain shapes' bounding sphere
   // (uniform on the sphere of directions from inside it). A path whose first
   // segment leaves the cone meets no chain shape first, so it is not one of
@@ -111,19 +124,26 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
   const Frame fr(dist_c > bound_r_ ? Vec3(to_c / dist_c) : Vec3(0.f, 0.f, 1.f));
   Vec3 d = glm::normalize(fr.to_world(Vec3(float(sin_t * std::cos(phi)), float(sin_t * std::sin(phi)), float(cos_t))));
   const double pdf_dir = 1.0 / (2.0 * M_PI * one_minus_cos_max);
+  // Point/spot: intensity I. Area: radiance times the projected area the
+  // position's density stands for, Le |cos(n_L, d)| / p_A (one-sided).
   Color I = em.value;
   if (em.type == Emitter::Type::Spot) I *= em.spot_falloff(em.frame.to_local(d));
+  if (is_area) {
+    const float cl = glm::dot(nL, d);
+    if (!(cl > 0.f)) return;
+    I *= float(double(cl) / pdf_pos);
+  }
   if (is_black(I)) return;
   Color flux = I * float(1.0 / (psel * pdf_dir));
   // Trace through chain vertices (the estimator's shapes and smooth BSDFs),
   // R/T by Fresnel as the BSDF samples them.
   Vec3 o = xL;
-  Vec3 prev_ng(0.f);
+  Vec3 prev_ng = nL;   // (an area light's ray leaves from an offset origin)
   int n = 0;
   thread_local std::string letters;   // light -> x_D order (n <= nmax_ <= max_chain)
   letters.clear();
   for (;;) {
-    const Vec3 org = n == 0 ? o : offset_ray_origin(o, prev_ng, d);
+    const Vec3 org = (n == 0 && !is_area) ? o : offset_ray_origin(o, prev_ng, d);
     st.lt_rays++;
     SurfaceInteraction si = scene_.intersect(org, d, 0.f, kInf);
     if (!si.valid) return;
@@ -140,7 +160,11 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
       std::string tau(letters.rbegin(), letters.rend());
       const size_t before = out.size();
       if (chains_.owns(0, max_depth_, tau)) connect(si, shape, flux, out, st);   // x_D seen directly
-      if (mmax_cam_ > 0) connect_chain(si, shape, flux, tau, rng, out, st);     // ... or through glass
+      // ... or through glass (not an area light's photon: its splat would carry
+      // the camera-side chain's |d omega_c / dA_D|, unbounded at the folds of
+      // what the camera sees in the glass, where the area light's photons land
+      // spread out; measured, docs/design-notes.md)
+      if (mmax_cam_ > 0 && !is_area) connect_chain(si, shape, flux, tau, rng, out, st);
       // one photon, one sample of each pixel: two splats in one pixel are one value
       if (out.size() == before + 2 && out[before].pixel == out[before + 1].pixel) {
         out[before].value += out[before + 1].value;

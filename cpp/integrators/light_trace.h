@@ -1,5 +1,6 @@
-// Light tracing of the point and spot lights' caustics seen directly by the
-// camera (docs/design-notes.md, "Light tracing the point lights' caustics").
+// Light tracing of the point and spot lights' caustics seen by the camera,
+// and optionally the area lights' (docs/design-notes.md, "Light tracing the
+// point lights' caustics").
 //
 // A point light's caustic on a diffuse floor is its irradiance through a
 // specular chain, E(x) = I T |d omega_L / dA_x|, which is unbounded at a focus
@@ -22,6 +23,15 @@
 // 1..camera_chain_max() vertices (ChainEstimator::connect_point), and the
 // camera path's separators behind that many chain vertices leave their
 // point-light chains to the photons too (path.cpp, chain_prefix).
+//
+// With `area` (PathParams::light_trace_area) the area chain lights are traced
+// too, seen directly only: a photon leaves a point uniform by area on the
+// light (weight Le |cos(n_L, w)| A / (p_sel p_w)); at the camera's first hits
+// the estimator skips their chains as well (Stats::chain_skip_area_lights)
+// and the path tracer drops its paths that reach an area light through such a
+// chain (Stats::lt_pt_dropped): the photons bring them whole. An area light's
+// caustic is bounded, but the estimator's values at camera-chosen points
+// carry K G, huge near the caustic's folds; the photons' are bounded there.
 //
 // Splat of a photon at x_D with flux weight Phi (intensity / direction pdf
 // times the chain's discrete weights), x_D at distance d from the pinhole c,
@@ -58,8 +68,9 @@ class LightTracer {
   // take the estimator's paths exactly.
   // through: also connect each photon's x_D to the camera through chains
   // (camera_chain_max(); sms_star and mpg only).
+  // area: trace the area chain lights too (else point and spot lights only).
   LightTracer(const Scene& scene, const ChainEstimator& chains, int max_depth, bool through = false,
-              float photons_per_sample = 1.f);
+              float photons_per_sample = 1.f, bool area = false);
   bool usable() const { return usable_; }
   const Scene& scene() const { return scene_; }
   // Photons per camera sample (PathParams::light_trace): each render pass
@@ -69,6 +80,11 @@ class LightTracer {
   // the camera path's separators behind at most that many chain vertices
   // leave their point/spot-light chains to the photons as well.
   int camera_chain_max() const { return mmax_cam_; }
+  // Are the area chain lights traced too (seen directly only)? Then the
+  // camera's first hits leave their area-light chains to the photons as well:
+  // the estimator skips them (Stats::chain_skip_area_lights) and the path
+  // tracer drops the paths that reach an area light through such a chain.
+  bool traces_area() const { return area_; }
   const std::string& why() const { return why_; }
   // One photon: emitted, traced through chain vertices, splatted (at most one
   // splat appended). Draws from rng only.
@@ -103,7 +119,8 @@ class LightTracer {
   int nmax_ = 0;
   int mmax_cam_ = 0;
   uint32_t max_depth_ = 0;
-  std::vector<int> lights_;          // point and spot chain lights
+  bool area_ = false;
+  std::vector<int> lights_;          // point and spot chain lights (and area ones with area_)
   DiscreteDistribution light_dist_;  // by power
   Vec3 bound_c_{0.f};                // bounding sphere of the chain shapes
   double bound_r_ = 0.0;

@@ -37,6 +37,10 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   // reach through a camera-side chain (LightTracer::camera_chain_max)
   bool chain_prefix = true;
   const int lt_cam = lt_ ? lt_->camera_chain_max() : 0;
+  const bool lt_area = lt_ && lt_->traces_area();
+  // the last separator's chains to area lights are the light tracer's (the
+  // camera's first hit; LightTracer::traces_area: seen directly only)
+  bool sep_lt_area = false;
   const bool cd_only = mode == PathParams::CameraDelta::Only;
   const bool cd_exclude = mode == PathParams::CameraDelta::Exclude;
   const bool cd_all = mode == PathParams::CameraDelta::All;
@@ -126,7 +130,10 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       const Color Le = scene.emitted(si);
       // (rate 0: this pixel's chain light is the path tracer's alone, below)
       LeafQuery leaf;  // (active_for's lookup, which pt_weight reuses)
-      if (chains_ && chain_ok && !tau.empty() && st.pixel_chain_rate != 0.f &&
+      if (sep_lt_area && chain_ok && !tau.empty() && chains_->owns(sep_depth, max_depth, tau)) {
+        // the light tracer's photons bring this path (LightTracer::traces_area)
+        st.lt_pt_dropped++;
+      } else if (chains_ && chain_ok && !tau.empty() && st.pixel_chain_rate != 0.f &&
           chains_->owns(sep_depth, max_depth, tau) && chains_->active_for(sep_si.p, si.p, tau, &st, &leaf)) {
         // A path the chain estimator also produces: this side's share of it
         // (0 when the estimator takes it whole; design.md "No double counting").
@@ -226,7 +233,11 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       const float q = chains_->rate_at(st);
       if (q <= 0.f) {
         st.chain_handed++;
-        if (seps == 0 && trace_k > 0 && chains_->guided_trace_on()) {
+        // (not at the camera's first hit when the photons take the area
+        // lights' chains: the trace's types are all owned there, mpg's mode
+        // owning every type up to nmax)
+        if (seps == 0 && trace_k > 0 && chains_->guided_trace_on() &&
+            !(lt_area && depth == 0)) {
           const Color v = beta * chains_->guided_trace(si, ctx, depth, max_depth, trace_k, rng, st);
           L += v;
           st.add_class(Stats::kClassTraced, v);
@@ -237,6 +248,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         // the camera's first hit, or a separator behind at most lt_cam chain
         // vertices: its chains to point/spot lights are the light tracer's
         st.chain_skip_delta_lights = lt_ && (depth == 0 || (chain_prefix && int(depth) <= lt_cam));
+        st.chain_skip_area_lights = lt_area && depth == 0;
         const Color X = beta * chains_->estimate(si, ctx, depth, max_depth, rng, st, beta, trace_alt ? &dens : nullptr);
         st.chain_skip_delta_lights = false;
         L += X * (1.f / q);
@@ -278,6 +290,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
     if (chains_) {
       if (separator) {
         sep_depth = depth;
+        sep_lt_area = lt_area && depth == 0;
         sep_first = seps == 0;
         sep_wo = wo;
         rr_sep = 1.0;

@@ -42,6 +42,11 @@ struct PathParams {
   // shapes too (sms_star, mpg), so that a caustic seen in the glass is light
   // traced as well (LightTracer::camera_chain_max)
   bool light_trace_through = false;
+  // ... and trace the area chain lights' photons too (seen directly only):
+  // their chains from the camera's first hits are then the photons' as well
+  // (the estimator skips them, the path tracer drops the paths that hit
+  // them; LightTracer::traces_area)
+  bool light_trace_area = false;
 };
 
 // With a ChainEstimator (integrators `sms` and `sms_star`) every separator also
@@ -54,7 +59,7 @@ class PathIntegrator : public Integrator {
     if (chains_ && !chains_->active()) chains_.reset();  // effects follow the scene
     if (chains_ && p_.light_trace > 0.f && p_.camera_delta != PathParams::CameraDelta::Only) {
       auto lt = std::make_shared<LightTracer>(chains_->scene(), *chains_, p_.max_depth, p_.light_trace_through,
-                                              p_.light_trace);
+                                              p_.light_trace, p_.light_trace_area);
       if (lt->usable()) lt_ = std::move(lt);
       else lt_off_ = lt->why();
     }

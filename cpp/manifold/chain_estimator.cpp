@@ -851,7 +851,7 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     if (!sample_light(rng, lp)) break;
     // A point or spot light's chains at the camera's first hit are the light
     // tracer's (integrators/light_trace.h): the same selection, value 0 here.
-    if (lp.point && st.chain_skip_delta_lights) {
+    if (st.chain_skip_delta_lights && (lp.point || st.chain_skip_area_lights)) {
       st.chain_lt_skipped++;
       break;
     }

@@ -57,6 +57,8 @@ struct Stats {
   // estimate leaves out point and spot lights (a depth-0 separator whose
   // chains to them the light tracer brings; integrators/light_trace.h).
   bool chain_skip_delta_lights = false;
+  // ... and area lights too (LightTracer::traces_area)
+  bool chain_skip_area_lights = false;
   // With PassConfig::record_classes (set by the render worker): the camera
   // sample's value split by where it entered (reset per camera sample): chain
   // estimates (X / q), the path tracer's shares of shared chain paths, the
@@ -196,6 +198,7 @@ struct Stats {
   uint64_t lt_photons = 0, lt_rays = 0, lt_splats = 0;
   uint64_t lt_chain_tries = 0, lt_chain_splats = 0;   // connections to the camera through glass (light_trace_through)
   uint64_t lt_rejected = 0;          // splats not finite or negative (dropped, counted)
+  uint64_t lt_pt_dropped = 0;        // path-tracer hits of an area light whose chain path the photons bring
   uint64_t guided_traces = 0;        // handoff_guided: traces drawn from a leaf in rate-0 pixels (and training's records)
   uint64_t guided_trace_hits = 0;    // ... that reached their light through the drawn letters
   std::vector<SubpathSample> subpaths;  // recorded in training passes
@@ -232,6 +235,7 @@ struct Stats {
     chain_skipped += o.chain_skipped;
     chain_handed += o.chain_handed;
     chain_lt_skipped += o.chain_lt_skipped;
+    lt_pt_dropped += o.lt_pt_dropped;
     lt_photons += o.lt_photons; lt_rays += o.lt_rays; lt_splats += o.lt_splats; lt_rejected += o.lt_rejected;
     lt_chain_tries += o.lt_chain_tries; lt_chain_splats += o.lt_chain_splats;
     guided_traces += o.guided_traces;
@@ -268,6 +272,7 @@ struct Stats {
             {"chain_skipped", double(chain_skipped)},
             {"chain_handed", double(chain_handed)},
             {"chain_lt_skipped", double(chain_lt_skipped)},
+            {"lt_pt_dropped", double(lt_pt_dropped)},
             {"lt_photons", double(lt_photons)}, {"lt_rays", double(lt_rays)},
             {"lt_splats", double(lt_splats)}, {"lt_rejected", double(lt_rejected)},
             {"lt_chain_tries", double(lt_chain_tries)}, {"lt_chain_splats", double(lt_chain_splats)},

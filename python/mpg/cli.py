@@ -179,7 +179,7 @@ def _run(args) -> int:
                   f"({st['spp_training']} spp, {st['seconds_training']:.1f} s), "
                   f"{st['guide_leaves']} leaves; {rates}", file=sys.stderr)
         if st.get("lt_photons"):
-            print(f"mpg-render: light traced the point/spot lights' caustics: {st['lt_photons']} photons, "
+            print(f"mpg-render: light traced the caustics the camera sees: {st['lt_photons']} photons, "
                   f"{st.get('lt_splats', 0)} reached the camera ({st.get('lt_chain_splats', 0)} of them "
                   f"through glass)", file=sys.stderr)
         if st["rejected_samples"]:

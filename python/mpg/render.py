@@ -21,12 +21,14 @@ from mpg.scene.desc import IntegratorDesc, SceneDesc
 # them until their own implementation lands (kept as hints, with a warning).
 IMPLEMENTED = {"path", "sms", "sms_star", "mpg"}
 # Image.class_sum's classes in order (Stats::Class; render(record_classes=True))
-CLASS_NAMES = ("chain", "shared", "traced", "handed", "unseen", "inactive", "unowned", "delta", "other")
+CLASS_NAMES = ("chain", "shared", "traced", "handed", "unseen", "inactive", "unowned", "delta", "other",
+               "photons")
 
 PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters", "camera_delta", "delta_branch"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
                 "threshold", "max_iterations", "min_step", "step_halvings", "form", "glossy_threshold",
-                "mis", "mis_rate", "chain_rate", "light_trace", "light_trace_through"}
+                "mis", "mis_rate", "chain_rate", "light_trace", "light_trace_through",
+                "light_trace_area"}
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
                 "guide_dir", "training_fraction", "training_guide_fraction", "stree_c", "stree_epsilon", "stree_filter",
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
@@ -35,7 +37,7 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "delta_split", "pixel_split", "pixel_split_max_cost", "limit_in_training", "known_types",
                 "handoff_guided", "learn_trace", "trace_tails", "joint_maps",
                 "trace_min_hits", "joint_min_samples"}
-BOOL_PARAMS = {"hide_emitters", "light_trace_through", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
+BOOL_PARAMS = {"hide_emitters", "light_trace_through", "light_trace_area", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "mis_rate", "chain_handoff", "limit_in_training", "known_types",
                "learn_trace", "trace_tails", "joint_maps"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
@@ -293,7 +295,10 @@ def render(
       chain paths, handed-off pixels' traced chain light, chain paths the path
       tracer kept whole at rate 0 and elsewhere because the estimator does not
       take them (a type their leaf never saw, no active leaf, not owned),
-      light seen through delta scattering only, the rest;
+      light seen through delta scattering only, the rest, the light tracer's
+      photons (not a part of the camera samples: their mean times spp, and
+      squares that give the photons' variance of the mean, the channels'
+      mean as the grey value's);
       mean over RGB) and its squares: Image.class_sum / class_sum_sq (crop
       height x width x classes; bench/error_classes.py); mpg: its final
       render's samples, not the training's.
@@ -327,9 +332,12 @@ def render(
         warnings.append(
             f"'{name}': the scene has no shape the manifold walk supports (smooth dielectric or "
             "conductor, no normal map) or no point/spot/area emitter; it renders as 'path'")
-    if integ.light_trace_off and integ.chains_delta_lights:
+    # (mpg traces its area lights by default: where it cannot, the estimator
+    # keeps them as before, and only an explicit request warns)
+    if integ.light_trace_off and (integ.chains_delta_lights or params.get("light_trace_area")):
         warnings.append(f"'{name}': light_trace is off: {integ.light_trace_off}; the chain estimator "
-                        "takes the point/spot lights' caustics")
+                        "takes the " + ("point/spot" if integ.chains_delta_lights else "area")
+                        + " lights' caustics")
     core_scene = scene.core
     cam = scene.desc.camera
     h, w = int(cam.crop[3]), int(cam.crop[2])
@@ -455,12 +463,25 @@ def render(
     else:
         mean = np.zeros_like(acc)
         var = np.full_like(acc, np.inf)
+    lt_var = None
     if lt_photons > 0:
         # the light-traced part: each photon an independent sample of every
         # pixel's part (most of them 0), so its mean and the variance of the mean
         lt_mean = lt_acc / lt_photons
         mean = mean + lt_mean
-        var = var + np.maximum(lt_acc2 / lt_photons - lt_mean * lt_mean, 0.0) / max(lt_photons - 1, 1)
+        lt_var = np.maximum(lt_acc2 / lt_photons - lt_mean * lt_mean, 0.0) / max(lt_photons - 1, 1)
+        var = var + lt_var
+    if cls_sum is not None:
+        # the photons' class: sum = their mean (grey) times the samples n, and
+        # squares such that error_classes' (sq / n - m^2) / (n - 1) is their variance
+        ph = np.zeros(cls_sum.shape[:2])
+        ph2 = np.zeros(cls_sum.shape[:2])
+        if lt_var is not None and done > 0:
+            m = lt_mean.mean(axis=2)
+            ph = m * done
+            ph2 = done * (m * m + lt_var.mean(axis=2) * max(done - 1, 1))
+        cls_sum = np.concatenate([cls_sum, ph[..., None]], axis=2)
+        cls_sum2 = np.concatenate([cls_sum2, ph2[..., None]], axis=2)
     rejected = int(stats.get("rejected_nan", 0) + stats.get("rejected_inf", 0)
                    + stats.get("rejected_negative", 0))
     out_stats: dict[str, Any] = {
