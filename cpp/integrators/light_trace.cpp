@@ -29,6 +29,8 @@ LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int m
     return;
   }
   light_dist_.build(w);
+  traced_.assign(scene.emitters.size(), 0);
+  for (int e : lights_) traced_[size_t(e)] = 1;
   // The camera's first hits: a depth-0 separator as the path tracer counts it.
   max_depth_ = uint32_t(max_depth);
   nmax_ = chains.max_chain_len(0, max_depth_);

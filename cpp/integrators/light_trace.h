@@ -85,6 +85,8 @@ class LightTracer {
   // the estimator skips them (Stats::chain_skip_area_lights) and the path
   // tracer drops the paths that reach an area light through such a chain.
   bool traces_area() const { return area_; }
+  // Does the tracer emit photons from emitter e?
+  bool traces_emitter(int e) const { return e >= 0 && size_t(e) < traced_.size() && traced_[size_t(e)] != 0; }
   const std::string& why() const { return why_; }
   // One photon: emitted, traced through chain vertices, splatted (at most one
   // splat appended). Draws from rng only.
@@ -122,6 +124,7 @@ class LightTracer {
   bool area_ = false;
   std::vector<int> lights_;          // point and spot chain lights (and area ones with area_)
   DiscreteDistribution light_dist_;  // by power
+  std::vector<char> traced_;         // emitter index -> in lights_
   Vec3 bound_c_{0.f};                // bounding sphere of the chain shapes
   double bound_r_ = 0.0;
   // camera

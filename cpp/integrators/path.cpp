@@ -130,9 +130,10 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       const Color Le = scene.emitted(si);
       // (rate 0: this pixel's chain light is the path tracer's alone, below)
       LeafQuery leaf;  // (active_for's lookup, which pt_weight reuses)
-      if (sep_lt_area && chain_ok && !tau.empty() && chains_->owns(sep_depth, max_depth, tau)) {
+      if (sep_lt_area && chain_ok && !tau.empty() && lt_->traces_emitter(shape.emitter) &&
+          chains_->owns(sep_depth, max_depth, tau)) {
         // the light tracer's photons bring this path (LightTracer::traces_area)
-        st.lt_pt_dropped++;
+        if (!is_black(Le)) st.lt_pt_dropped++;
       } else if (chains_ && chain_ok && !tau.empty() && st.pixel_chain_rate != 0.f &&
           chains_->owns(sep_depth, max_depth, tau) && chains_->active_for(sep_si.p, si.p, tau, &st, &leaf)) {
         // A path the chain estimator also produces: this side's share of it
@@ -250,7 +251,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         st.chain_skip_delta_lights = lt_ && (depth == 0 || (chain_prefix && int(depth) <= lt_cam));
         st.chain_skip_area_lights = lt_area && depth == 0;
         const Color X = beta * chains_->estimate(si, ctx, depth, max_depth, rng, st, beta, trace_alt ? &dens : nullptr);
-        st.chain_skip_delta_lights = false;
+        st.chain_skip_delta_lights = st.chain_skip_area_lights = false;
         L += X * (1.f / q);
         st.add_class(Stats::kClassChain, X * (1.f / q));
         if (dens.ok)
@@ -262,7 +263,9 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       } else {
         st.chain_skipped++;
       }
-      if (trace_alt && seps == 0) {
+      // (not where the render runs no trace: a first hit whose area-light
+      // chains are the photons'; the sample records 0 there, as the render has)
+      if (trace_alt && seps == 0 && !(lt_area && depth == 0)) {
         // two traces, from which the render worker forms the values of k traces
         const uint64_t r0 = st.rays;
         for (TraceSample& t : st.sample_traces) {

@@ -337,7 +337,8 @@ def render(
     if integ.light_trace_off and (integ.chains_delta_lights or params.get("light_trace_area")):
         warnings.append(f"'{name}': light_trace is off: {integ.light_trace_off}; the chain estimator "
                         "takes the " + ("point/spot" if integ.chains_delta_lights else "area")
-                        + " lights' caustics")
+                        + (" and area" if integ.chains_delta_lights and params.get("light_trace_area")
+                           else "") + " lights' caustics")
     core_scene = scene.core
     cam = scene.desc.camera
     h, w = int(cam.crop[3]), int(cam.crop[2])
