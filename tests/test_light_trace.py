@@ -390,7 +390,8 @@ def test_a_point_and_an_area_light_keep_their_sum():
     left to the photons (value 0 there) while the area light's estimates and
     the path tracer's shares of them stay as they were. sms_star with and
     without photons agree over the image and its nine blocks (the planar
-    mirror's chains have K = 1: both renders have small variance)."""
+    mirror's chains have K = 1: both renders have small variance); so do
+    they with the area light's photons as well (light_trace_area)."""
     from stats_util import REGIONS_24, image_zmax
 
     xml = mirror_scene().replace(
@@ -409,6 +410,13 @@ def test_a_point_and_an_area_light_keep_their_sum():
     assert on.rgb[..., 0].mean() > 1.02 * mirror_expected().mean()
     assert on.stats["rejected_samples"] == 0 and off.stats["rejected_samples"] == 0
     assert image_zmax(on, off, REGIONS_24) < 5
+    # ... and with the area light's photons too: both lights' mirror chains
+    # at the first hits are the photons' (no estimate contributes there)
+    both = mpg.render(sc, integrator={"type": "sms_star", "light_trace": 16, "light_trace_area": True}, spp=256,
+                      seed=7, progress=False)
+    assert both.stats["chain_contributions"] == 0 and both.stats["lt_pt_dropped"] > 0
+    assert both.stats["rejected_samples"] == 0 and both.stats["lt_rejected"] == 0
+    assert image_zmax(both, off, REGIONS_24) < 5
 
 
 def area_mirror_scene(res=24):
