@@ -850,7 +850,8 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
   do {
     if (!sample_light(rng, lp)) break;
     // A point or spot light's chains at the camera's first hit are the light
-    // tracer's (integrators/light_trace.h): the same selection, value 0 here.
+    // tracer's (integrators/light_trace.h), and with light_trace_area an area
+    // light's too: the same selection, value 0 here.
     if (st.chain_skip_delta_lights && (lp.point || st.chain_skip_area_lights)) {
       st.chain_lt_skipped++;
       break;
