@@ -334,11 +334,11 @@ def render(
             "conductor, no normal map) or no point/spot/area emitter; it renders as 'path'")
     # (mpg traces its area lights by default: where it cannot, the estimator
     # keeps them as before, and only an explicit request warns)
-    if integ.light_trace_off and (integ.chains_delta_lights or params.get("light_trace_area")):
+    kinds = [k for k, on in (("point/spot", integ.chains_delta_lights),
+                             ("area", bool(params.get("light_trace_area")))) if on]
+    if integ.light_trace_off and kinds:
         warnings.append(f"'{name}': light_trace is off: {integ.light_trace_off}; the chain estimator "
-                        "takes the " + ("point/spot" if integ.chains_delta_lights else "area")
-                        + (" and area" if integ.chains_delta_lights and params.get("light_trace_area")
-                           else "") + " lights' caustics")
+                        f"takes the {' and '.join(kinds)} lights' caustics")
     core_scene = scene.core
     cam = scene.desc.camera
     h, w = int(cam.crop[3]), int(cam.crop[2])
