@@ -30,13 +30,20 @@ def mirror_scene(res=24, lx=0.0):
     </scene>"""
 
 
-def mirror_expected(res=24, sub=6, lx=0.0):
-    """Radiance of the floor: rho/pi * I * (cos/d^2 from the light + from its image)."""
+def mirror_floor_points(res=24, sub=6):
+    """The floor points (X, Z) that mirror_scene's camera (height 4 over
+    x = -0.4, looking down, up = -z, fov 30) sees at sub x sub positions in
+    each pixel: arrays of res*sub x res*sub, rows along z."""
     t = np.tan(np.radians(15))
     off = (np.arange(sub) + 0.5) / sub
     px = (np.arange(res)[:, None] + off[None, :]).ravel()
     s = (2 * px / res - 1) * t
-    X, Z = np.meshgrid(s * 4 - 0.4, s * 4)   # camera at height 4 looking down, up = -z
+    return np.meshgrid(s * 4 - 0.4, s * 4)
+
+
+def mirror_expected(res=24, sub=6, lx=0.0):
+    """Radiance of the floor: rho/pi * I * (cos/d^2 from the light + from its image)."""
+    X, Z = mirror_floor_points(res, sub)
     out = np.zeros_like(X)
     for l in (lx, 2.0 - lx):                 # light and its mirror image
         d2 = (X - l) ** 2 + 1 + Z**2
@@ -522,11 +529,7 @@ def spot_falloff(d):
 
 def spot_mirror_expected(res=24, sub=6):
     """Pixel means of spot_mirror_scene's floor (as mirror_expected, with the falloff)."""
-    t = np.tan(np.radians(15))
-    off = (np.arange(sub) + 0.5) / sub
-    px = (np.arange(res)[:, None] + off[None, :]).ravel()
-    s = (2 * px / res - 1) * t
-    X, Z = np.meshgrid(s * 4 - 0.4, s * 4)
+    X, Z = mirror_floor_points(res, sub)
     out = np.zeros_like(X)
     for lx in (0.0, 2.0):                     # light and its mirror image
         v = np.stack([X - lx, -np.ones_like(X), Z], axis=-1)

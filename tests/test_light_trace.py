@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import mpg
-from test_chains import (SLAB_POINT, _fresnel, mirror_expected, mirror_scene, spot_mirror_expected,
-                         spot_mirror_scene, swept_solid_angle)
+from test_chains import (SLAB_POINT, _fresnel, mirror_expected, mirror_floor_points, mirror_scene,
+                         spot_mirror_expected, spot_mirror_scene, swept_solid_angle)
 from test_manifold import _slab_path
 
 
@@ -434,11 +434,7 @@ def area_mirror_expected(res=24, sub=6, nq=8, image=True):
     x = 1 (reflected across it): Le * int cos_l cos_p / r^2 dA = Le * int dA / r^4
     for a light facing straight down at height 1 (cos_l = cos_p = 1 / r),
     by the midpoint rule over nq x nq nodes of the light."""
-    t = np.tan(np.radians(15))
-    off = (np.arange(sub) + 0.5) / sub
-    px = (np.arange(res)[:, None] + off[None, :]).ravel()
-    s = (2 * px / res - 1) * t
-    X, Z = np.meshgrid(s * 4 - 0.4, s * 4)
+    X, Z = mirror_floor_points(res, sub)
     q = (np.arange(nq) + 0.5) / nq * 0.2 - 0.1
     dA = (0.2 / nq) ** 2
     E = np.zeros_like(X)
@@ -528,11 +524,8 @@ def test_a_sphere_lights_mirror_caustic_from_photons_matches_the_closed_form():
                      seed=4, progress=False)
     st = img.stats
     assert st["lt_splats"] > 0 and st["chain_contributions"] == 0 and st["lt_rejected"] == 0
-    t = np.tan(np.radians(15))
     sub, res = 6, 24
-    px = (np.arange(res)[:, None] + (np.arange(sub) + 0.5)[None, :] / sub).ravel()
-    s = (2 * px / res - 1) * t
-    X, Z = np.meshgrid(s * 4 - 0.4, s * 4)
+    X, Z = mirror_floor_points(res, sub)
     E = np.zeros_like(X)
     for cx in (0.8, 1.2):   # the light and its mirror image
         d2 = (X - cx) ** 2 + 1 + (Z - 1) ** 2

@@ -38,9 +38,6 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   bool chain_prefix = true;
   const int lt_cam = lt_ ? lt_->camera_chain_max() : 0;
   const bool lt_area = lt_ && lt_->traces_area();
-  // the last separator's chains to area lights are the light tracer's (the
-  // camera's first hit; LightTracer::traces_area: seen directly only)
-  bool sep_lt_area = false;
   const bool cd_only = mode == PathParams::CameraDelta::Only;
   const bool cd_exclude = mode == PathParams::CameraDelta::Exclude;
   const bool cd_all = mode == PathParams::CameraDelta::All;
@@ -130,7 +127,9 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       const Color Le = scene.emitted(si);
       // (rate 0: this pixel's chain light is the path tracer's alone, below)
       LeafQuery leaf;  // (active_for's lookup, which pt_weight reuses)
-      if (sep_lt_area && chain_ok && !tau.empty() && lt_->traces_emitter(shape.emitter) &&
+      // (the last separator the camera's first hit, whose chains to area
+      // lights are the photons'; LightTracer::traces_area: seen directly only)
+      if (lt_area && sep_depth == 0 && chain_ok && !tau.empty() && lt_->traces_emitter(shape.emitter) &&
           chains_->owns(sep_depth, max_depth, tau)) {
         // the light tracer's photons bring this path (LightTracer::traces_area)
         if (!is_black(Le)) st.lt_pt_dropped++;
@@ -196,23 +195,13 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       if (es.pdf > 0.f && !is_black(es.value)) {
         const Color f = scene.bsdfs.eval(ctx, si.wi, es.wi);
         if (!is_black(f)) {
-          // The shadow ray runs from the offset origin to the light's point
-          // itself (not along es.wi, which starts at si.p): along es.wi it
-          // would cross an area light's plane short of es.p by about the
-          // offset / cos, more than the relative margin below when the
-          // offset (1e-4 of the coordinates' size) is large against the
-          // distance, and the light would shadow itself.
-          const Vec3 org = offset_ray_origin(si.p, si.ng, es.wi);
-          Vec3 sdir = es.wi;
-          float dist = kInf;
-          if (!std::isinf(es.dist)) {
-            const Vec3 to_l = es.p - org;
-            const float len = glm::length(to_l);
-            sdir = len > 0.f ? to_l / len : es.wi;
-            dist = len * (1.f - 1e-4f);
-          }
+          // (to the light's point itself, Scene::occluded_to; an infinite
+          // light along es.wi)
           st.shadow_rays++;
-          if (!scene.occluded(org, sdir, 0.f, dist)) {
+          const bool blocked = std::isinf(es.dist)
+                                   ? scene.occluded(offset_ray_origin(si.p, si.ng, es.wi), es.wi, 0.f, kInf)
+                                   : scene.occluded_to(si.p, si.ng, es.p);
+          if (!blocked) {
             const float w = es.delta ? 1.f : power_heuristic(es.pdf, scene.bsdfs.pdf(ctx, si.wi, es.wi));
             L += beta * f * es.value * (w / es.pdf);
           }
@@ -232,13 +221,15 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       // tracer's whole (above); the same for every sample of the pixel, so
       // each path is counted once.
       const float q = chains_->rate_at(st);
+      // the camera's first hit, whose area-light chains are the photons'
+      const bool lt_first = lt_area && depth == 0;
       if (q <= 0.f) {
         st.chain_handed++;
         // (not at the camera's first hit when the photons take the area
         // lights' chains: the trace's types are all owned there, mpg's mode
         // owning every type up to nmax)
         if (seps == 0 && trace_k > 0 && chains_->guided_trace_on() &&
-            !(lt_area && depth == 0)) {
+            !lt_first) {
           const Color v = beta * chains_->guided_trace(si, ctx, depth, max_depth, trace_k, rng, st);
           L += v;
           st.add_class(Stats::kClassTraced, v);
@@ -249,7 +240,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         // the camera's first hit, or a separator behind at most lt_cam chain
         // vertices: its chains to point/spot lights are the light tracer's
         st.chain_skip_delta_lights = lt_ && (depth == 0 || (chain_prefix && int(depth) <= lt_cam));
-        st.chain_skip_area_lights = lt_area && depth == 0;
+        st.chain_skip_area_lights = lt_first;
         const Color X = beta * chains_->estimate(si, ctx, depth, max_depth, rng, st, beta, trace_alt ? &dens : nullptr);
         st.chain_skip_delta_lights = st.chain_skip_area_lights = false;
         L += X * (1.f / q);
@@ -265,7 +256,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       }
       // (not where the render runs no trace: a first hit whose area-light
       // chains are the photons'; the sample records 0 there, as the render has)
-      if (trace_alt && seps == 0 && !(lt_area && depth == 0)) {
+      if (trace_alt && seps == 0 && !lt_first) {
         // two traces, from which the render worker forms the values of k traces
         const uint64_t r0 = st.rays;
         for (TraceSample& t : st.sample_traces) {
@@ -293,7 +284,6 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
     if (chains_) {
       if (separator) {
         sep_depth = depth;
-        sep_lt_area = lt_area && depth == 0;
         sep_first = seps == 0;
         sep_wo = wo;
         rr_sep = 1.0;

@@ -901,16 +901,8 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
     if (is_black(f)) break;
     const Color kap = kappa(chain, tau, lp.point);
     if (is_black(kap)) break;
-    {
-      // from the offset origin to x_L itself (as the path tracer's NEE: along
-      // the direction from last.p an area light's plane is crossed short of x_L)
-      const Vec3 o = offset_ray_origin(to_f(last.p), to_f(last.ng), to_f(lp.p - last.p));
-      const DVec3 dl = lp.p - to_d(o);
-      const double len = glm::length(dl);
-      const Vec3 dir = to_f(dl / len);
-      st.shadow_rays++;
-      if (scene_.occluded(o, dir, 0.f, float(len) * (1.f - 1e-4f))) break;
-    }
+    st.shadow_rays++;
+    if (scene_.occluded_to(to_f(last.p), to_f(last.ng), to_f(lp.p))) break;
     double G = 0.0;
     Color Le = lp.value;
     if (lp.point) {

@@ -245,6 +245,14 @@ SurfaceInteraction Scene::make_interaction(const Vec3& o, const Vec3& d, float t
   return si;
 }
 
+bool Scene::occluded_to(const Vec3& p, const Vec3& ng, const Vec3& target) const {
+  const Vec3 org = offset_ray_origin(p, ng, target - p);
+  const Vec3 to_t = target - org;
+  const float len = glm::length(to_t);
+  if (!(len > 0.f)) return false;
+  return occluded(org, to_t / len, 0.f, len * (1.f - 1e-4f));
+}
+
 bool Scene::occluded(const Vec3& o, const Vec3& d, float tmin, float tmax) const {
   RTCIntersectContext ctx;
   rtcInitIntersectContext(&ctx);

@@ -52,6 +52,14 @@ class Scene {
   SurfaceInteraction make_interaction(const Vec3& o, const Vec3& d, float t, unsigned geom,
                                       unsigned prim, float bu, float bv) const;
   bool occluded(const Vec3& o, const Vec3& d, float tmin, float tmax) const;
+  // Is the segment from the surface point p (geometric normal ng) to the
+  // point `target` blocked? The ray leaves from p's offset origin and runs to
+  // the target itself, stopping short of it by a relative 1e-4 (along the
+  // direction from p itself it would cross an area light's plane short of
+  // the target by about the offset / cos, more than that margin when the
+  // offset, 1e-4 of the coordinates' size, is large against the distance:
+  // the light would shadow itself).
+  bool occluded_to(const Vec3& p, const Vec3& ng, const Vec3& target) const;
 
   EmitterSample sample_emitter(const Vec3& ref, float u_sel, const Vec2& u) const;
   // Density (solid angle at ref, selection included) that sample_emitter produced
