@@ -237,6 +237,9 @@ GuideConfig guide_config(float c, float epsilon, int max_depth, int threads, con
 constexpr float kMpgLightTrace = 0.25f;
 constexpr bool kMpgLightTraceThrough = true;
 constexpr bool kMpgLightTraceArea = true;
+// ... and in glossy mode, where the photons are the caustics' only estimator
+// (docs/results.md, "Glossy casters' photons": 0.25 / 0.5 / 1 on plane)
+constexpr float kMpgLightTraceGlossy = 0.5f;
 
 std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, const std::string& type,
                                             const py::dict& p) {
@@ -258,6 +261,10 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
   pp.light_trace = get<float>(p, "light_trace", type == "mpg" ? kMpgLightTrace : 0.f);
   pp.light_trace_through = get<bool>(p, "light_trace_through", type == "mpg" ? kMpgLightTraceThrough : false);
   pp.light_trace_area = get<bool>(p, "light_trace_area", type == "mpg" ? kMpgLightTraceArea : false);
+  pp.light_trace_glossy = get<float>(p, "light_trace_glossy", type == "mpg" ? kMpgLightTraceGlossy : 0.f);
+  if (!(pp.light_trace_glossy >= 0.f && pp.light_trace_glossy <= 64.f))
+    throw std::invalid_argument("light_trace_glossy must be in [0, 64] photons per camera sample, got " +
+                                std::to_string(pp.light_trace_glossy));
   if (!(pp.light_trace >= 0.f && pp.light_trace <= 64.f))
     throw std::invalid_argument("light_trace must be in [0, 64] photons per camera sample, got " +
                                 std::to_string(pp.light_trace));
@@ -666,6 +673,11 @@ PYBIND11_MODULE(_core, m) {
       .def_property_readonly("chains_delta_lights", [](const Integrator& i) {
         auto* p = dynamic_cast<const PathIntegrator*>(&i);
         return p != nullptr && p->chains_delta_lights();
+      })
+      .def_property_readonly("light_trace_glossy_on", [](const Integrator& i) {
+        // the light tracer runs in glossy mode (no chain estimator; LightTracer)
+        const LightTracer* lt = i.light_tracer();
+        return lt != nullptr && lt->glossy();
       })
       .def_property_readonly("light_trace_off", [](const Integrator& i) {
         // why light_trace > 0 runs no light tracer ("" when it runs or was not asked)

@@ -5,13 +5,71 @@
 
 namespace mpg {
 
+namespace {
+// A BSDF node whose every leaf is smooth or rough below the threshold, under
+// normal maps or not (glossy mode's caster shapes; the walk's specular_node
+// without its normal-map restriction).
+bool glossy_caster_node(const BSDFSet& b, int id, float thr) {
+  if (id < 0) return false;
+  const BSDF& n = b.nodes[size_t(id)];
+  if (n.type == BSDFType::Dielectric || n.type == BSDFType::Conductor) return true;
+  if (n.type == BSDFType::RoughDielectric || n.type == BSDFType::RoughConductor)
+    return std::max(n.mf.ax, n.mf.ay) < thr;
+  if (n.type == BSDFType::TwoSided) return glossy_caster_node(b, n.front, thr) && glossy_caster_node(b, n.back, thr);
+  if (n.type == BSDFType::NormalMap) return glossy_caster_node(b, n.nested, thr);
+  return false;
+}
+}  // namespace
+
 LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int max_depth, bool through,
                          float photons_per_sample, bool area)
-    : scene_(scene), chains_(chains), rate_(photons_per_sample), area_(area) {
+    : scene_(scene), chains_(&chains), rate_(photons_per_sample), area_(area) {
   if (!chains.active()) {
     why_ = "the scene runs no chain estimator";
     return;
   }
+  // The camera's first hits: a depth-0 separator as the path tracer counts it.
+  max_depth_ = uint32_t(max_depth);
+  nmax_ = chains.max_chain_len(0, max_depth_);
+  std::vector<char> casters(scene.shapes.size(), 0);
+  for (size_t s = 0; s < scene.shapes.size(); ++s) casters[s] = chains.is_chain_shape(int(s)) ? 1 : 0;
+  if (!init_common(casters)) return;
+  // Camera-side chains of 1..mmax vertices (room for a light chain of one
+  // vertex behind them: m + 1 + n + 1 segments <= max_depth)
+  if (through && chains.sms_star_mode())
+    mmax_cam_ = max_depth < 0 ? chains.max_chain() : std::min(chains.max_chain(), max_depth - 3);
+  mmax_cam_ = std::max(mmax_cam_, 0);
+  usable_ = true;
+}
+
+LightTracer::LightTracer(const Scene& scene, int max_depth, int nmax, float glossy_threshold,
+                         float photons_per_sample, bool area)
+    : scene_(scene), glossy_(true), glossy_threshold_(glossy_threshold), rate_(photons_per_sample), area_(area) {
+  max_depth_ = uint32_t(max_depth);
+  nmax_ = nmax;
+  // the casters: as the chain estimator's shapes (not emitters; a glossy
+  // caustic_receiver is a separator), normal maps allowed
+  caster_shape_.assign(scene.shapes.size(), 0);
+  for (size_t s = 0; s < scene.shapes.size(); ++s) {
+    const Shape& sh = scene.shapes[s];
+    if (sh.emitter < 0 && glossy_caster_node(scene.bsdfs, sh.bsdf, glossy_threshold) &&
+        !(sh.caustic_receiver && !glossy_caster_node(scene.bsdfs, sh.bsdf, 0.f)))
+      caster_shape_[s] = 1;
+  }
+  if (!init_common(caster_shape_)) return;
+  usable_ = true;
+}
+
+bool LightTracer::caster_vertex(int shape, const BSDF& leaf) const {
+  if (!glossy_) return chains_->is_chain_shape(shape) && chains_->is_chain_bsdf(leaf);
+  if (shape < 0 || size_t(shape) >= caster_shape_.size() || !caster_shape_[size_t(shape)]) return false;
+  if (leaf.type == BSDFType::Dielectric || leaf.type == BSDFType::Conductor) return true;
+  return (leaf.type == BSDFType::RoughDielectric || leaf.type == BSDFType::RoughConductor) &&
+         std::max(leaf.mf.ax, leaf.mf.ay) < glossy_threshold_;
+}
+
+bool LightTracer::init_common(const std::vector<char>& casters) {
+  const Scene& scene = scene_;
   std::vector<float> w;
   for (size_t e = 0; e < scene.emitters.size(); ++e) {
     const Emitter& em = scene.emitters[e];
@@ -26,33 +84,31 @@ LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int m
   }
   if (lights_.empty()) {
     why_ = area_ ? "the scene has no point, spot or area light" : "the scene has no point or spot light";
-    return;
+    return false;
   }
   light_dist_.build(w);
   traced_.assign(scene.emitters.size(), 0);
   for (int e : lights_) traced_[size_t(e)] = 1;
-  // The camera's first hits: a depth-0 separator as the path tracer counts it.
-  max_depth_ = uint32_t(max_depth);
-  nmax_ = chains.max_chain_len(0, max_depth_);
   if (nmax_ < 1) {
     why_ = "max_depth leaves no room for a chain after the camera's first hit";
-    return;
+    return false;
   }
-  if (!chains.chain_shapes_smooth()) {
+  if (chains_ && !chains_->chain_shapes_smooth()) {
     // A glossy chain vertex would need the adjoint of its rough BSDF and the
     // estimator's offset normals; not done: the estimator keeps those paths.
+    // (Glossy mode traces such vertices where no estimator runs.)
     why_ = "a chain shape is glossy or normal-mapped (only smooth glass and mirrors are light traced)";
-    return;
+    return false;
   }
   const Camera& cam = scene.camera;
   if (cam.filter.type != FilterSampler::Type::Box || std::abs(cam.filter.radius - 0.5f) > 1e-6f) {
     why_ = "the film's reconstruction filter is not a box of one pixel";
-    return;
+    return false;
   }
   // Bounding sphere of the chain shapes: photons are aimed into its cone.
   Vec3 lo(kInf), hi(-kInf);
   for (size_t s = 0; s < scene.shapes.size(); ++s) {
-    if (!chains.is_chain_shape(int(s))) continue;
+    if (!casters[s]) continue;
     const Shape& sh = scene.shapes[s];
     if (sh.kind == Shape::Kind::Sphere) {
       lo = glm::min(lo, sh.center - Vec3(sh.radius));
@@ -65,8 +121,8 @@ LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int m
     }
   }
   if (!(lo.x <= hi.x)) {
-    why_ = "no chain shape";
-    return;
+    why_ = glossy_ ? "no shape is a caster (smooth, or rough below the glossy threshold)" : "no chain shape";
+    return false;
   }
   bound_c_ = 0.5f * (lo + hi);
   // (a margin for float rounding of the hits against the box)
@@ -77,15 +133,10 @@ LightTracer::LightTracer(const Scene& scene, const ChainEstimator& chains, int m
   const double a_pix = (2.0 * cam.tan_half_x / cam.width) * (2.0 * cam.tan_half_y / cam.height);
   if (!(a_pix > 0.0)) {
     why_ = "the camera's field of view is empty";
-    return;
+    return false;
   }
   inv_a_pix_ = 1.0 / a_pix;
-  // Camera-side chains of 1..mmax vertices (room for a light chain of one
-  // vertex behind them: m + 1 + n + 1 segments <= max_depth)
-  if (through && chains.sms_star_mode())
-    mmax_cam_ = max_depth < 0 ? chains.max_chain() : std::min(chains.max_chain(), max_depth - 3);
-  mmax_cam_ = std::max(mmax_cam_, 0);
-  usable_ = true;
+  return true;
 }
 
 void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) const {
@@ -138,7 +189,8 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
   if (is_black(I)) return;
   Color flux = I * float(1.0 / (psel * pdf_dir));
   // Trace through chain vertices (the estimator's shapes and smooth BSDFs),
-  // R/T by Fresnel as the BSDF samples them.
+  // R/T by Fresnel as the BSDF samples them; in glossy mode through the
+  // casters, any lobe their BSDF samples.
   Vec3 o = xL;
   Vec3 prev_ng = nL;   // (an area light's ray leaves from an offset origin)
   int n = 0;
@@ -152,7 +204,7 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
     const Shape& shape = scene_.shapes[size_t(si.shape)];
     const BSDFContext ctx = scene_.bsdfs.resolve(shape.bsdf, si);
     if (!ctx.leaf) return;
-    const bool chain_vertex = chains_.is_chain_shape(si.shape) && chains_.is_chain_bsdf(*ctx.leaf);
+    const bool chain_vertex = caster_vertex(si.shape, *ctx.leaf);
     if (!chain_vertex) {
       // not a separator (a delta surface off the chain shapes), or the
       // light's direct illumination (next-event estimation's): none of ours
@@ -161,7 +213,7 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
       // (sms: its one type), the letters in x_D -> x_L order
       std::string tau(letters.rbegin(), letters.rend());
       const size_t before = out.size();
-      if (chains_.owns(0, max_depth_, tau)) connect(si, shape, flux, out, st);   // x_D seen directly
+      if (glossy_ || chains_->owns(0, max_depth_, tau)) connect(si, shape, flux, out, st);   // x_D seen directly
       // ... or through glass (not an area light's photon: its splat would carry
       // the camera-side chain's |d omega_c / dA_D|, unbounded at the folds of
       // what the camera sees in the glass, where the area light's photons land
@@ -180,7 +232,7 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
     const Vec2 v2(rng.next_float(), rng.next_float());
     const Vec3 wl = si.wi;   // toward the light side
     const BSDFSample bs = scene_.bsdfs.sample(ctx, wl, u1, v2, wo);
-    if (!(bs.pdf > 0.f) || is_black(bs.weight) || !bs.delta) return;
+    if (!(bs.pdf > 0.f) || is_black(bs.weight) || (!bs.delta && !glossy_)) return;
     // flux weight: radiance mode's (eta_i / eta_t)^2 of a refraction undone
     // (bs.eta = eta_t / eta_i), and the adjoint's shading-normal correction
     // |cos(n_s, w_l) cos(n_g, w_o)| / |cos(n_g, w_l) cos(n_s, w_o)| (1 without a normal map)
@@ -275,9 +327,9 @@ void LightTracer::connect_chain(const SurfaceInteraction& si, const Shape& shape
   ManifoldChain chain;
   Color w(0.f);
   st.lt_chain_tries++;
-  if (!chains_.connect_point(DVec3(si.p), DVec3(si.ng), DVec3(cam_o_), mmax_cam_, rng, st, chain, w)) return;
+  if (!chains_->connect_point(DVec3(si.p), DVec3(si.ng), DVec3(cam_o_), mmax_cam_, rng, st, chain, w)) return;
   // the photon's light chain must be one the estimator owns behind m camera-side vertices
-  if (!chains_.owns(uint32_t(chain.v.size()), max_depth_, tau_l)) return;
+  if (!chains_->owns(uint32_t(chain.v.size()), max_depth_, tau_l)) return;
   const Vec3 last = Vec3(chain.v.back().p);
   uint32_t pixel = 0;
   float cos_c = 0.f, t_near = 0.f;

@@ -33,6 +33,18 @@
 // caustic is bounded, but the estimator's values at camera-chosen points
 // carry K G, huge near the caustic's folds; the photons' are bounded there.
 //
+// Glossy mode (PathParams::light_trace_glossy; the second constructor): where
+// no chain estimator runs because the casters are glossy under a normal map
+// (the walk does not take those, docs/design-notes.md), the photons take the
+// casters' caustics seen directly with no estimator at all. The casters are
+// the shapes whose BSDF is smooth or rough below the glossy threshold, under
+// normal maps or not (caster_vertex; not emitters, not caustic_receiver
+// shapes); a photon follows their BSDF samples, glossy lobes included, with
+// the adjoint's weights, and the path set is: camera -> x_D (the camera ray's
+// first hit, not delta, not a caster) -> 1..nmax caster vertices -> a traced
+// light. The path tracer drops exactly those paths, both the NEE at the last
+// caster and the BSDF sample that hits the light (path.cpp, `gl_n`).
+//
 // Splat of a photon at x_D with flux weight Phi (intensity / direction pdf
 // times the chain's discrete weights), x_D at distance d from the pinhole c,
 // camera axis angle theta_c (pixel value = mean of the radiance over the
@@ -71,6 +83,16 @@ class LightTracer {
   // area: trace the area chain lights too (else point and spot lights only).
   LightTracer(const Scene& scene, const ChainEstimator& chains, int max_depth, bool through = false,
               float photons_per_sample = 1.f, bool area = false);
+  // Glossy mode (see above): no chain estimator; casters are the shapes whose
+  // BSDF is below glossy_threshold (normal-mapped or not), chains of at most
+  // nmax of them (the estimator's max_chain_len at the first hit).
+  LightTracer(const Scene& scene, int max_depth, int nmax, float glossy_threshold, float photons_per_sample,
+              bool area);
+  bool glossy() const { return glossy_; }
+  // The longest chain of caster vertices a photon follows.
+  int max_chain() const { return nmax_; }
+  // Is the hit (shape, resolved BSDF) a caster vertex, one a photon passes?
+  bool caster_vertex(int shape, const BSDF& leaf) const;
   bool usable() const { return usable_; }
   const Scene& scene() const { return scene_; }
   // Photons per camera sample (PathParams::light_trace): each render pass
@@ -113,8 +135,13 @@ class LightTracer {
   // its direction to the optical axis and the world distance at which the
   // camera ray starts (the near clip); false outside the crop or the clip range.
   bool project(const Vec3& p, uint32_t& pixel, float& cos_c, float& t_near) const;
+  // The emitters, camera and aim shared by both modes (false: why_ says why)
+  bool init_common(const std::vector<char>& casters);
   const Scene& scene_;
-  const ChainEstimator& chains_;
+  const ChainEstimator* chains_ = nullptr;   // (null in glossy mode)
+  bool glossy_ = false;
+  float glossy_threshold_ = 0.f;
+  std::vector<char> caster_shape_;   // glossy mode: shape index -> caster
   bool usable_ = false;
   std::string why_;
   float rate_ = 1.f;

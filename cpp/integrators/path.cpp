@@ -37,7 +37,15 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   // reach through a camera-side chain (LightTracer::camera_chain_max)
   bool chain_prefix = true;
   const int lt_cam = lt_ ? lt_->camera_chain_max() : 0;
-  const bool lt_area = lt_ && lt_->traces_area();
+  const bool lt_area = lt_ && lt_->traces_area() && !lt_->glossy();
+  // Glossy mode of the light tracer (no chain estimator): gl_n counts the
+  // caster vertices after the camera's first hit while every vertex since is
+  // one (-1: not such a path). Paths camera -> x_D -> 1..gl_max casters -> a
+  // traced light are the photons': dropped here, the NEE at the last caster
+  // and the BSDF sample that hits the light alike (LightTracer, glossy mode).
+  const bool gl = lt_ && lt_->glossy();
+  const int gl_max = gl ? lt_->max_chain() : 0;
+  int gl_n = -1;
   const bool cd_only = mode == PathParams::CameraDelta::Only;
   const bool cd_exclude = mode == PathParams::CameraDelta::Exclude;
   const bool cd_all = mode == PathParams::CameraDelta::All;
@@ -129,7 +137,10 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       LeafQuery leaf;  // (active_for's lookup, which pt_weight reuses)
       // (the last separator the camera's first hit, whose chains to area
       // lights are the photons'; LightTracer::traces_area: seen directly only)
-      if (lt_area && sep_depth == 0 && chain_ok && !tau.empty() && lt_->traces_emitter(shape.emitter) &&
+      if (gl && gl_n >= 1 && gl_n <= gl_max && lt_->traces_emitter(shape.emitter)) {
+        // the glossy casters' photons bring this path
+        if (!is_black(Le)) st.lt_pt_dropped++;
+      } else if (lt_area && sep_depth == 0 && chain_ok && !tau.empty() && lt_->traces_emitter(shape.emitter) &&
           chains_->owns(sep_depth, max_depth, tau)) {
         // the light tracer's photons bring this path (LightTracer::traces_area)
         if (!is_black(Le)) st.lt_pt_dropped++;
@@ -187,12 +198,20 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
     // estimator runs) is not a separator: no NEE there, its light is the chains'.
     const bool chain_vertex = chains_ && chains_->is_chain_bsdf(*ctx.leaf) && chains_->is_chain_shape(si.shape);
     const bool separator = !ctx.leaf->is_delta() && !chain_vertex;
+    if (gl) {
+      const bool caster = lt_->caster_vertex(si.shape, *ctx.leaf);
+      if (depth == 0) gl_n = !ctx.leaf->is_delta() && !caster ? 0 : -1;
+      else if (gl_n >= 0) gl_n = caster ? gl_n + 1 : -1;
+    }
     // Next-event estimation (not for delta BSDFs).
     const float u_sel = rng.next_float();
     const Vec2 u_em(rng.next_float(), rng.next_float());
     if (separator && !cd_only) {
       const EmitterSample es = scene.sample_emitter(si.p, u_sel, u_em);
-      if (es.pdf > 0.f && !is_black(es.value)) {
+      if (gl && gl_n >= 1 && gl_n <= gl_max && lt_->traces_emitter(es.emitter)) {
+        // (a glossy caster's NEE to a traced light: the photons' path)
+        if (es.pdf > 0.f && !is_black(es.value)) st.lt_pt_dropped++;
+      } else if (es.pdf > 0.f && !is_black(es.value)) {
         const Color f = scene.bsdfs.eval(ctx, si.wi, es.wi);
         if (!is_black(f)) {
           // (to the light's point itself, Scene::occluded_to; an infinite

@@ -47,6 +47,12 @@ struct PathParams {
   // (the estimator skips them, the path tracer drops the paths that hit
   // them; LightTracer::traces_area)
   bool light_trace_area = false;
+  // Photons per camera sample where no chain estimator runs because the
+  // casters are glossy under a normal map (the walk does not take them):
+  // the casters' caustics the camera sees directly are then light traced
+  // from every point, spot and area light (LightTracer's glossy mode) and the
+  // path tracer drops those paths (0: off)
+  float light_trace_glossy = 0.f;
 };
 
 // With a ChainEstimator (integrators `sms` and `sms_star`) every separator also
@@ -56,7 +62,18 @@ class PathIntegrator : public Integrator {
  public:
   explicit PathIntegrator(PathParams p, std::shared_ptr<const ChainEstimator> chains = nullptr)
       : p_(p), chains_(std::move(chains)) {
-    if (chains_ && !chains_->active()) chains_.reset();  // effects follow the scene
+    if (chains_ && !chains_->active()) {
+      // effects follow the scene; glossy casters' caustics are still light
+      // traced on request (LightTracer's glossy mode)
+      if (p_.light_trace_glossy > 0.f && p_.camera_delta != PathParams::CameraDelta::Only) {
+        auto lt = std::make_shared<LightTracer>(chains_->scene(), p_.max_depth,
+                                                chains_->max_chain_len(0, uint32_t(p_.max_depth)),
+                                                chains_->glossy_threshold(), p_.light_trace_glossy, true);
+        if (lt->usable()) lt_ = std::move(lt);
+        else lt_off_ = lt->why();
+      }
+      chains_.reset();
+    }
     if (chains_ && p_.light_trace > 0.f && p_.camera_delta != PathParams::CameraDelta::Only) {
       auto lt = std::make_shared<LightTracer>(chains_->scene(), *chains_, p_.max_depth, p_.light_trace_through,
                                               p_.light_trace, p_.light_trace_area);
@@ -142,7 +159,7 @@ class PathIntegrator : public Integrator {
                    int levels, PCG32& rng, Stats& stats) const;
   PathParams p_;
   std::shared_ptr<const ChainEstimator> chains_;
-  std::shared_ptr<const LightTracer> lt_;   // (holds a reference to *chains_)
+  std::shared_ptr<const LightTracer> lt_;   // (holds a reference to *chains_, none in glossy mode)
   std::string lt_off_;
 };
 

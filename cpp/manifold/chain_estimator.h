@@ -174,6 +174,8 @@ class ChainEstimator {
   // glossy chain vertex) and without a normal map, as the light tracer needs
   // (integrators/light_trace.h).
   bool chain_shapes_smooth() const { return chain_shapes_smooth_; }
+  // Rough interfaces with alpha below this are chain vertices (WalkParams).
+  float glossy_threshold() const { return p_.walk.glossy_threshold; }
   // Is shape `s` a surface the walk accepts as a specular vertex?
   bool is_chain_shape(int s) const { return specular_shape_[size_t(s)] != 0; }
   // Are all of a traced seed's vertices on chain shapes? (trace_seed checks the

@@ -28,7 +28,7 @@ PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters", "camera_delta", "delta_
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
                 "threshold", "max_iterations", "min_step", "step_halvings", "form", "glossy_threshold",
                 "mis", "mis_rate", "chain_rate", "light_trace", "light_trace_through",
-                "light_trace_area"}
+                "light_trace_area", "light_trace_glossy"}
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
                 "guide_dir", "training_fraction", "training_guide_fraction", "stree_c", "stree_epsilon", "stree_filter",
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
@@ -123,7 +123,8 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
     for k in ("continuation", "uniqueness_threshold", "threshold", "min_step", "glossy_threshold",
               "guide_fraction", "training_guide_fraction", "training_fraction", "stree_c",
               "stree_epsilon", "chain_rate",
-              "chain_rate_min", "chain_rate_train", "chain_handoff_negligible", "light_trace"):
+              "chain_rate_min", "chain_rate_train", "chain_handoff_negligible", "light_trace",
+              "light_trace_glossy"):
         if k == "chain_rate" and name == "mpg" and str(core_params.get(k)).strip().lower() == "auto":
             if "guide" in core_params:
                 raise RenderError("chain_rate 'auto' is learned by mpg's training loop; "
@@ -329,9 +330,11 @@ def render(
     except ValueError as e:
         raise RenderError(f"integrator '{name}': {e}") from None
     if name != "path" and not integ.chains_active:
+        rest = ("it renders as 'path', with photons for the glossy casters' caustics the camera sees "
+                "(light_trace_glossy)" if integ.light_trace_glossy_on else "it renders as 'path'")
         warnings.append(
             f"'{name}': the scene has no shape the manifold walk supports (smooth dielectric or "
-            "conductor, no normal map) or no point/spot/area emitter; it renders as 'path'")
+            f"conductor, no normal map) or no point/spot/area emitter; {rest}")
     # (mpg traces its area lights by default: where it cannot, the estimator
     # keeps them as before, and only an explicit request warns)
     kinds = [k for k, on in (("point/spot", integ.chains_delta_lights),
