@@ -9,13 +9,25 @@ namespace {
 // A BSDF node whose every leaf is smooth or rough below the threshold, under
 // normal maps or not (glossy mode's caster shapes; the walk's specular_node
 // without its normal-map restriction).
+bool glossy_reflector_node(const BSDFSet& b, int id, float thr) {
+  if (id < 0) return false;
+  const BSDF& n = b.nodes[size_t(id)];
+  if (n.type == BSDFType::Conductor) return true;
+  if (n.type == BSDFType::RoughConductor) return std::max(n.mf.ax, n.mf.ay) < thr;
+  if (n.type == BSDFType::NormalMap) return glossy_reflector_node(b, n.nested, thr);
+  return false;
+}
 bool glossy_caster_node(const BSDFSet& b, int id, float thr) {
   if (id < 0) return false;
   const BSDF& n = b.nodes[size_t(id)];
   if (n.type == BSDFType::Dielectric || n.type == BSDFType::Conductor) return true;
   if (n.type == BSDFType::RoughDielectric || n.type == BSDFType::RoughConductor)
     return std::max(n.mf.ax, n.mf.ay) < thr;
-  if (n.type == BSDFType::TwoSided) return glossy_caster_node(b, n.front, thr) && glossy_caster_node(b, n.back, thr);
+  // (two-sided: reflective sides only. BSDFSet::resolve picks the side by the
+  // direction it is given, the camera's on the path tracer's side and the
+  // light's on the photon's: one side for a reflection, two for a transmission)
+  if (n.type == BSDFType::TwoSided)
+    return glossy_reflector_node(b, n.front, thr) && glossy_reflector_node(b, n.back, thr);
   if (n.type == BSDFType::NormalMap) return glossy_caster_node(b, n.nested, thr);
   return false;
 }
@@ -231,7 +243,19 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
     const float u1 = rng.next_float();
     const Vec2 v2(rng.next_float(), rng.next_float());
     const Vec3 wl = si.wi;   // toward the light side
-    const BSDFSample bs = scene_.bsdfs.sample(ctx, wl, u1, v2, wo);
+    BSDFSample bs;
+    if (glossy_) {
+      // Under a normal map BSDFSet rejects a direction between the base and
+      // the perturbed tangent planes on its second argument only: the path
+      // tracer's light side, here wl. So the photon checks wl and samples
+      // the leaf without the check on the camera side, as the path tracer
+      // accepts it there.
+      if (ctx.perturbed && ctx.base.to_local(wl).z * ctx.frame.to_local(wl).z <= 0.f) return;
+      bs = scene_.bsdfs.sample_local(*ctx.leaf, ctx.uv, ctx.frame.to_local(wl), u1, v2);
+      if (bs.pdf > 0.f) wo = ctx.frame.to_world(bs.wo);
+    } else {
+      bs = scene_.bsdfs.sample(ctx, wl, u1, v2, wo);
+    }
     if (!(bs.pdf > 0.f) || is_black(bs.weight) || (!bs.delta && !glossy_)) return;
     // flux weight: radiance mode's (eta_i / eta_t)^2 of a refraction undone
     // (bs.eta = eta_t / eta_i), and the adjoint's shading-normal correction

@@ -298,6 +298,9 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       delta_prefix = false;
     }
     chain_prefix = chain_prefix && chain_vertex && bs.delta && !bs.null;
+    // (a delta lobe of the camera's first hit, smooth plastic's coating: not
+    // in the BSDF the photons' splat evaluates, so such paths stay here)
+    if (gl && depth == 0 && bs.delta) gl_n = -1;
     beta *= bs.weight;
     eta *= bs.eta;
     if (chains_) {

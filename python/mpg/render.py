@@ -339,7 +339,7 @@ def render(
     # keeps them as before, and only an explicit request warns)
     kinds = [k for k, on in (("point/spot", integ.chains_delta_lights),
                              ("area", bool(params.get("light_trace_area")))) if on]
-    if integ.light_trace_off and kinds:
+    if integ.light_trace_off and kinds and integ.chains_active:
         warnings.append(f"'{name}': light_trace is off: {integ.light_trace_off}; the chain estimator "
                         f"takes the {' and '.join(kinds)} lights' caustics")
     core_scene = scene.core
