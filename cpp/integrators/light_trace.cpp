@@ -219,8 +219,11 @@ void LightTracer::trace(PCG32& rng, Stats& st, std::vector<LightSplat>& out) con
     const bool chain_vertex = caster_vertex(si.shape, *ctx.leaf);
     if (!chain_vertex) {
       // not a separator (a delta surface off the chain shapes), or the
-      // light's direct illumination (next-event estimation's): none of ours
-      if (ctx.leaf->is_delta() || n == 0) return;
+      // light's direct illumination (next-event estimation's): none of ours.
+      // (Glossy mode leaves the delta test to the splat, which resolves the
+      // BSDF toward the camera as the path tracer does: a two-sided one with
+      // a delta side resolves its side by the direction given.)
+      if ((!glossy_ && ctx.leaf->is_delta()) || n == 0) return;
       // only the chains the estimator would own at the camera's first hit
       // (sms: its one type), the letters in x_D -> x_L order
       std::string tau(letters.rbegin(), letters.rend());
