@@ -20,9 +20,7 @@ bool glossy_reflector_node(const BSDFSet& b, int id, float thr) {
 bool glossy_caster_node(const BSDFSet& b, int id, float thr) {
   if (id < 0) return false;
   const BSDF& n = b.nodes[size_t(id)];
-  if (n.type == BSDFType::Dielectric || n.type == BSDFType::Conductor) return true;
-  if (n.type == BSDFType::RoughDielectric || n.type == BSDFType::RoughConductor)
-    return std::max(n.mf.ax, n.mf.ay) < thr;
+  if (ChainEstimator::chain_leaf(n, thr)) return true;
   // (two-sided: reflective sides only. BSDFSet::resolve picks the side by the
   // direction it is given, the camera's on the path tracer's side and the
   // light's on the photon's: one side for a reflection, two for a transmission)
@@ -75,9 +73,7 @@ LightTracer::LightTracer(const Scene& scene, int max_depth, int nmax, float glos
 bool LightTracer::caster_vertex(int shape, const BSDF& leaf) const {
   if (!glossy_) return chains_->is_chain_shape(shape) && chains_->is_chain_bsdf(leaf);
   if (shape < 0 || size_t(shape) >= caster_shape_.size() || !caster_shape_[size_t(shape)]) return false;
-  if (leaf.type == BSDFType::Dielectric || leaf.type == BSDFType::Conductor) return true;
-  return (leaf.type == BSDFType::RoughDielectric || leaf.type == BSDFType::RoughConductor) &&
-         std::max(leaf.mf.ax, leaf.mf.ay) < glossy_threshold_;
+  return ChainEstimator::chain_leaf(leaf, glossy_threshold_);
 }
 
 bool LightTracer::init_common(const std::vector<char>& casters) {

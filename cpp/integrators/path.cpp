@@ -135,14 +135,14 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       const Color Le = scene.emitted(si);
       // (rate 0: this pixel's chain light is the path tracer's alone, below)
       LeafQuery leaf;  // (active_for's lookup, which pt_weight reuses)
-      // (the last separator the camera's first hit, whose chains to area
-      // lights are the photons'; LightTracer::traces_area: seen directly only)
       if (gl && gl_n >= 1 && gl_n <= gl_max && lt_->traces_emitter(shape.emitter)) {
         // the glossy casters' photons bring this path
         if (!is_black(Le)) st.lt_pt_dropped++;
       } else if (lt_area && sep_depth == 0 && chain_ok && !tau.empty() && lt_->traces_emitter(shape.emitter) &&
           chains_->owns(sep_depth, max_depth, tau)) {
-        // the light tracer's photons bring this path (LightTracer::traces_area)
+        // the light tracer's photons bring this path: the last separator the
+        // camera's first hit, whose chains to area lights are the photons'
+        // (LightTracer::traces_area: seen directly only)
         if (!is_black(Le)) st.lt_pt_dropped++;
       } else if (chains_ && chain_ok && !tau.empty() && st.pixel_chain_rate != 0.f &&
           chains_->owns(sep_depth, max_depth, tau) && chains_->active_for(sep_si.p, si.p, tau, &st, &leaf)) {

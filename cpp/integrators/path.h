@@ -66,11 +66,11 @@ class PathIntegrator : public Integrator {
       // effects follow the scene; glossy casters' caustics are still light
       // traced on request (LightTracer's glossy mode)
       if (p_.light_trace_glossy > 0.f && p_.camera_delta != PathParams::CameraDelta::Only) {
+        // (silent when it cannot run: mpg's default asks for it on every scene)
         auto lt = std::make_shared<LightTracer>(chains_->scene(), p_.max_depth,
                                                 chains_->max_chain_len(0, uint32_t(p_.max_depth)),
                                                 chains_->glossy_threshold(), p_.light_trace_glossy, true);
         if (lt->usable()) lt_ = std::move(lt);
-        else lt_off_ = lt->why();
       }
       chains_.reset();
     }

@@ -188,10 +188,13 @@ class ChainEstimator {
   }
   // Is this resolved BSDF a chain vertex (smooth, or glossy below the
   // threshold)? Such vertices are not separators for the path tracer.
-  bool is_chain_bsdf(const BSDF& b) const {
+  bool is_chain_bsdf(const BSDF& b) const { return chain_leaf(b, p_.walk.glossy_threshold); }
+  // The same test for any threshold (the light tracer's glossy mode, which
+  // runs without an estimator): smooth, or rough below glossy_threshold.
+  static bool chain_leaf(const BSDF& b, float glossy_threshold) {
     if (b.type == BSDFType::Dielectric || b.type == BSDFType::Conductor) return true;
     return (b.type == BSDFType::RoughDielectric || b.type == BSDFType::RoughConductor) &&
-           std::max(b.mf.ax, b.mf.ay) < p_.walk.glossy_threshold;
+           std::max(b.mf.ax, b.mf.ay) < glossy_threshold;
   }
 
   // Photon initialisation (MPG supplemental Sec. 2): trace `count` photons from

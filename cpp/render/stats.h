@@ -198,7 +198,7 @@ struct Stats {
   uint64_t lt_photons = 0, lt_rays = 0, lt_splats = 0;
   uint64_t lt_chain_tries = 0, lt_chain_splats = 0;   // connections to the camera through glass (light_trace_through)
   uint64_t lt_rejected = 0;          // splats not finite or negative (dropped, counted)
-  uint64_t lt_pt_dropped = 0;        // path-tracer hits of an area light whose chain path the photons bring
+  uint64_t lt_pt_dropped = 0;        // path-tracer contributions (light hits; glossy mode: NEE too) whose path the photons bring
   uint64_t guided_traces = 0;        // handoff_guided: traces drawn from a leaf in rate-0 pixels (and training's records)
   uint64_t guided_trace_hits = 0;    // ... that reached their light through the drawn letters
   std::vector<SubpathSample> subpaths;  // recorded in training passes
