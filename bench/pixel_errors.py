@@ -1,7 +1,8 @@
 """Where an image's error sits: one mpg render (or any integrator) against the
 cached reference, the share of MSE and relMSE in its worst pixels, and those
 pixels (and the share of MSE in the scene's caustic box and in the image's
-upper half). With --moments X Y (mpg only), the training statistics the learned
+upper half, and those regions' means against the reference's with z: a
+bias check). With --moments X Y (mpg only), the training statistics the learned
 rates saw at that pixel: the chains' second moment E[sum X^2], a sample's
 variance, the chain cost at rate 1 against the rest of the sample, and the
 rate the pixel got (docs/results.md, "Splitting the pixels, and a floor on the
@@ -86,12 +87,20 @@ def main() -> int:
     rel = se / (ref.mean(axis=2) ** 2 + 0.01)
     out: dict = {"scene": args.scene, "integrator": args.integrator, "seed": args.seed,
                  "time": args.time, "spp": img.spp, "mse": float(se.mean()), "relmse": float(rel.mean())}
+    # the regions' shares of the error and their means against the reference's,
+    # with the render's standard error of the mean (its per-pixel variance of
+    # the mean; the reference's own noise left out) and z: a bias check
+    regions = [("image", np.s_[:, :]), ("upper_half", np.s_[: se.shape[0] // 2, :])]
     if sc.caustic_box is not None:
-        # the caustic box's share of the error (the scene sidecar's box) and the upper half's
         from mpg.metrics import box_to_slices
-        rows, cols = box_to_slices(se.shape, sc.caustic_box)
-        out["mse_share_caustic_box"] = float(se[rows, cols].sum() / se.sum())
-        out["mse_share_upper_half"] = float(se[: se.shape[0] // 2].sum() / se.sum())
+        regions.insert(1, ("caustic_box", box_to_slices(se.shape, sc.caustic_box)))
+    out["region_means"] = {}
+    for label, r in regions:
+        if label != "image":
+            out[f"mse_share_{label}"] = float(se[r].sum() / se.sum())
+        a, b = float(img.rgb[r].astype(float).mean()), float(ref[r].astype(float).mean())
+        sem = float(np.sqrt(img.variance[r].astype(float).sum(axis=(0, 1)).mean()) / se[r].size)
+        out["region_means"][label] = {"render": a, "reference": b, "se": sem, "z": (a - b) / sem}
     for key, e in (("mse", se), ("relmse", rel)):
         flat = np.sort(e.ravel())[::-1]
         out[f"{key}_share_top"] = {str(k): float(flat[:k].sum() / flat.sum()) for k in (1, 10, 100, 1000)}
