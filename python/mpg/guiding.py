@@ -41,6 +41,14 @@ def _split_setting(name: str, value, words: tuple[str, ...]):
 # (bench/results/compare-branch-suite; 3 levels did half as well on double_slabs).
 DELTA_BRANCH = 8
 
+# mpg's default max_chain (the longest chain the estimator, the guide and the
+# photons take; the core's default, sms_star's, is 6): with 8 the 8-refraction
+# caustic of chain_length_4 is no longer the path tracer's alone (128^2, 10 s,
+# 2 seeds: MSE 0.0208 -> 0.0194, relMSE 0.172 -> 0.108), level on the suite
+# within the seeds' spread (docs/results.md, twenty-second and twenty-third
+# sessions). sms_star keeps 6: with 8 it is worse there (0.253 -> 0.277).
+MAX_CHAIN = 8
+
 # mpg's default guide_fraction: alpha of MPG Eq. 13, the guided share of seed
 # chains, in the render and (unless training_guide_fraction says otherwise) in
 # the training passes: the paper's 0.5. Before the Bernoulli trials stopped at
@@ -213,6 +221,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # two-lobe delta vertices (design-notes "Branching the paths of the light
     # seen in the glass"); mpg's default, the baselines (path, sms*) keep 0
     params.setdefault("delta_branch", DELTA_BRANCH)
+    params.setdefault("max_chain", MAX_CHAIN)
     # pixel_split: "mse" (PIXEL_SPLIT, the default) or "relmse" (learned with the
     # rates for that error: each sample of a pixel the mean of k camera samples),
     # "handoff", k everywhere, or "off" (mpg.chain_rates.learn_pixel_split)
