@@ -860,3 +860,61 @@ def test_joint_maps_render_end_to_end_and_bad_values_are_refused(scenes_dir):
     pt = mpg.load_file(scenes_dir / "eval" / "sphere_point.xml", res="16")
     w = mpg.render(pt, integrator={"type": "mpg", "trace_min_hits": 16}, spp=4, seed=3, progress=False).stats["warnings"]
     assert any("trace_min_hits" in x and "ignored" in x for x in w), w
+
+
+def _photon_sums(rng, h=6, w=5, n=4000, hit=0.3, scale=2.0):
+    """Splat sums of n photons over an h x w crop: each photon lands in a
+    random pixel with probability `hit`, with an exponential value."""
+    s = np.zeros((h, w, 3))
+    s2 = np.zeros((h, w, 3))
+    land = rng.random(n) < hit
+    pix = rng.integers(0, h * w, n)[land]
+    val = rng.exponential(scale, (int(land.sum()), 3))
+    np.add.at(s.reshape(-1, 3), pix, val)
+    np.add.at(s2.reshape(-1, 3), pix, val * val)
+    return s, s2
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=hst.integers(0, 2**31 - 1), cam_var=hst.floats(1e-6, 1e3), cam_cost=hst.floats(0.5, 200.0),
+       photon_cost=hst.floats(0.5, 50.0), hit=hst.floats(0.001, 1.0), r0=hst.floats(0.05, 2.0))
+def test_photon_rate_minimises_the_modelled_error_times_cost(seed, cam_var, cam_cost, photon_cost, hit, r0):
+    """Eq. 5: the learned photons per camera sample minimise F(r) = (mean V +
+    mean v / (r P)) (c + r d) over the allowed range (checked on a grid of
+    rates, not by the closed form), and the predicted gain over r0 is F(r0) /
+    F(r) >= 1."""
+    from mpg.chain_rates import PHOTON_RATE_MAX, PHOTON_RATE_MIN, learn_photon_rate
+    rng = np.random.default_rng(seed)
+    n = 4000
+    s, s2 = _photon_sums(rng, n=n, hit=hit)
+    r, info = learn_photon_rate(cam_var, cam_cost, s, s2, n, photon_cost * n, r0)
+    assert PHOTON_RATE_MIN <= r <= PHOTON_RATE_MAX
+    assert r == info["light_trace_learned"]
+    p = s.shape[0] * s.shape[1]
+    m = s / n
+    v = float(np.mean(s2 / n - m * m)) * n / (n - 1)
+
+    def f(x):
+        return (cam_var + v / (x * p)) * (cam_cost + x * photon_cost)
+
+    grid = np.geomspace(PHOTON_RATE_MIN, PHOTON_RATE_MAX, 400)
+    assert f(r) <= np.min([f(x) for x in grid]) * (1 + 1e-9)
+    assert info["light_trace_model_gain"] == pytest.approx(f(r0) / f(r), rel=1e-9)
+    assert info["light_trace_model_gain"] >= 1.0 - 1e-9   # (r0 is in the allowed range)
+
+
+def test_photon_rate_edges():
+    """No photon landed: the least rate; a camera without variance: the most;
+    nothing measured (no photons, no cost): the rate given, no model; rejected
+    samples' non-finite sums do not poison it."""
+    from mpg.chain_rates import PHOTON_RATE_MAX, PHOTON_RATE_MIN, learn_photon_rate
+    z = np.zeros((4, 4, 3))
+    assert learn_photon_rate(1.0, 10.0, z, z, 1000, 5000.0, 0.25)[0] == PHOTON_RATE_MIN
+    s, s2 = _photon_sums(np.random.default_rng(1), h=4, w=4, n=1000)
+    assert learn_photon_rate(0.0, 10.0, s, s2, 1000, 5000.0, 0.25)[0] == PHOTON_RATE_MAX
+    assert learn_photon_rate(1.0, 10.0, s, s2, 0, 0.0, 0.25) == (0.25, {})
+    assert learn_photon_rate(1.0, 0.0, s, s2, 1000, 5000.0, 0.25) == (0.25, {})
+    bad = s2.copy()
+    bad[0, 0, 0] = np.inf
+    r, info = learn_photon_rate(float("nan"), 10.0, s, bad, 1000, 5000.0, 0.25)
+    assert np.isfinite(r) and all(np.isfinite(v) for v in info.values())

@@ -364,14 +364,24 @@ def test_light_inside_the_glass_gives_finite_counted_splats(scenes_dir):
     assert img.stats["lt_splats"] > 0 and img.stats["lt_rejected"] == 0 and img.stats["rejected_samples"] == 0
 
 
+def _photons_at(st: dict, spp: int, npix: int, rate: float | None = None) -> bool:
+    """The final render traced rate (default: the learned one, or the core's
+    0.25 where none was learned) x spp x pixels photons (each pass rounds its
+    own count; the core holds the rate as a float)."""
+    r = st.get("light_trace_learned", 0.25) if rate is None else rate
+    return abs(st["lt_photons"] - np.float32(r) * spp * npix) <= st["passes"] + 1
+
+
 def test_mpg_light_traces_its_final_render_only(scenes_dir):
-    """mpg light traces by default (0.25 photons per camera sample, through glass too) where the scene has a point light; its
-    training passes trace none (they never reach the image): the photons are
-    light_trace (0.25) x the final render's spp x pixels per pass."""
+    """mpg light traces by default (photons per camera sample learned after
+    training, light_trace "auto"; through glass too) where the scene has a
+    point light; its training passes trace none (they never reach the image),
+    nor does the photon rate's pilot: the photons are the learned rate x the
+    final render's spp x pixels per pass."""
     sc = mpg.load_file(scenes_dir / "eval" / "sphere_point.xml", res="24")
     img = mpg.render(sc, integrator="mpg", spp=16, seed=1, progress=False)
     st = img.stats
-    assert st["lt_photons"] == round(0.25 * img.spp * 24 * 24)
+    assert _photons_at(st, img.spp, 24 * 24) and st["integrator_params"]["light_trace"] == "auto"
     assert st["lt_chain_splats"] > 0   # (light_trace_through: the ball's focus seen in the ball)
     assert st["lt_splats"] > 0 and st["chain_lt_skipped"] > 0 and st["rejected_samples"] == 0
     assert np.isfinite(img.rgb).all()
@@ -475,7 +485,7 @@ def test_light_traced_area_light_mirror_matches_the_closed_form(integ):
 
 def test_mpg_light_traces_area_lights_by_default(scenes_dir):
     """mpg's default light_trace_area: on the glass ball under an area light
-    its final render traces light_trace (0.25) x spp x pixels photons, the
+    its final render traces the learned rate x spp x pixels photons, the
     estimator skips the area light's chains at the camera's first hits and the
     path tracer drops its paths through the ball to the light there; the
     image is finite and nothing is rejected. (Unbiasedness: test_guiding's
@@ -483,7 +493,7 @@ def test_mpg_light_traces_area_lights_by_default(scenes_dir):
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
     img = mpg.render(sc, integrator="mpg", spp=32, seed=1, progress=False)
     st = img.stats
-    assert st["lt_photons"] == round(0.25 * img.spp * 24 * 24)
+    assert _photons_at(st, img.spp, 24 * 24)
     assert st["lt_splats"] > 0 and st["chain_lt_skipped"] > 0 and st["lt_pt_dropped"] > 0
     assert st["lt_chain_splats"] == 0   # (an area light's photons are not connected through glass)
     assert st["rejected_samples"] == 0 and st["lt_rejected"] == 0 and np.isfinite(img.rgb).all()
@@ -661,9 +671,11 @@ def test_glossy_mode_runs_only_where_no_chain_estimator_does():
                      progress=False)
     p = mpg.render(g, integrator="path", spp=16, seed=2, progress=False)
     assert off.stats["lt_photons"] == 0 and np.array_equal(off.rgb, p.rgb)
-    # mpg's default traces them (0.5 photons per sample) and says so
+    # mpg's default traces them: light_trace_glossy "auto", which without a
+    # chain estimator has no training to learn from, is 0.5 photons per sample
     m = mpg.render(g, integrator="mpg", spp=16, seed=2, progress=False)
     assert m.stats["lt_photons"] == round(0.5 * m.spp * 24 * 24) and m.stats["lt_pt_dropped"] > 0
+    assert m.stats["integrator_params"]["light_trace_glossy"] == "auto" and "light_trace_learned" not in m.stats
     assert m.stats["rejected_samples"] == 0 and m.stats["lt_rejected"] == 0
     s = mpg.render(g, integrator={"type": "sms_star", "light_trace_glossy": 1}, spp=4, seed=2, progress=False)
     assert any("light_trace_glossy" in w for w in s.stats["warnings"]), s.stats["warnings"]
@@ -691,3 +703,38 @@ def test_glossy_photons_at_a_tiny_or_grazing_light_stay_finite(light):
     assert st["lt_photons"] > 0 and st["lt_splats"] > 0 and st["lt_pt_dropped"] >= 0
     assert np.isfinite(img.rgb).all() and (img.rgb >= 0).all() and st["rejected_samples"] == 0
     assert st["lt_rejected"] <= st["lt_splats"] // 100
+
+
+def test_mpg_learns_its_photon_rate_where_it_traces_photons(scenes_dir):
+    """light_trace "auto" (mpg's default): after training, a pilot pass (two
+    camera samples per pixel, at least PHOTON_PILOT photons, its image unused)
+    measures what Eq. 5 needs, and the render traces at the learned rate,
+    inside [PHOTON_RATE_MIN, PHOTON_RATE_MAX]; the model's parts are reported.
+    Below PHOTON_PILOT_MIN_TRAINING training spp no pilot runs (the core's
+    0.25). A number is used as given, with no pilot; "auto" belongs to mpg; a
+    scene without photons runs no pilot."""
+    from mpg.chain_rates import PHOTON_PILOT, PHOTON_RATE_MAX, PHOTON_RATE_MIN
+    from mpg.guiding import PHOTON_PILOT_MIN_TRAINING
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
+    img = mpg.render(sc, integrator="mpg", spp=256, seed=4, threads=2, progress=False)
+    st = img.stats
+    # counted work, not timed: the same rate and image on one thread
+    one = mpg.render(sc, integrator="mpg", spp=256, seed=4, threads=1, progress=False)
+    assert one.stats["light_trace_learned"] == st["light_trace_learned"] and np.array_equal(one.rgb, img.rgb)
+    assert PHOTON_RATE_MIN <= st["light_trace_learned"] <= PHOTON_RATE_MAX
+    assert _photons_at(st, img.spp, 24 * 24)
+    assert st["photon_pilot"] >= min(PHOTON_PILOT, 64 * 24 * 24) and st["seconds_photon_pilot"] > 0
+    for k in ("v_camera", "v_photon", "c_camera", "c_photon"):
+        assert st[f"light_trace_model_{k}"] > 0, k
+    assert st["light_trace_model_gain"] >= 1.0
+    assert st["spp_training"] >= PHOTON_PILOT_MIN_TRAINING
+    given = mpg.render(sc, integrator={"type": "mpg", "light_trace": 0.5}, spp=256, seed=4, progress=False)
+    assert "light_trace_learned" not in given.stats and _photons_at(given.stats, given.spp, 24 * 24, 0.5)
+    short = mpg.render(sc, integrator="mpg", spp=32, seed=4, progress=False)
+    assert short.stats["spp_training"] < PHOTON_PILOT_MIN_TRAINING and "light_trace_learned" not in short.stats
+    assert _photons_at(short.stats, short.spp, 24 * 24, 0.25)
+    with pytest.raises(mpg.RenderError, match="light_trace 'auto'"):
+        mpg.render(sc, integrator={"type": "sms_star", "light_trace": "auto"}, spp=1, progress=False)
+    room = mpg.load_file(scenes_dir / "eval" / "diffuse_room.xml", res="16")
+    plain = mpg.render(room, integrator="mpg", spp=8, seed=4, progress=False)
+    assert "light_trace_learned" not in plain.stats and plain.stats["lt_photons"] == 0

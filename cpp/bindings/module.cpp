@@ -180,6 +180,9 @@ py::dict pass_to_dict(PassResult& r) {
     put("delta_sum_sq", r.delta_sum_sq, rgb);
   }
   out["lt_photons"] = r.lt_photons;
+  out["lt_seconds"] = r.lt_seconds;
+  out["lt_work_rays"] = r.lt_work_rays;
+  out["lt_work_walk_steps"] = r.lt_work_walk_steps;
   if (r.lt_photons > 0) {   // the light tracer's splats (Integrator::light_tracer)
     put("lt_sum", r.lt_sum, rgb);
     put("lt_sum_sq", r.lt_sum_sq, rgb);
@@ -678,6 +681,10 @@ PYBIND11_MODULE(_core, m) {
         // the light tracer runs in glossy mode (no chain estimator; LightTracer)
         const LightTracer* lt = i.light_tracer();
         return lt != nullptr && lt->glossy();
+      })
+      .def_property_readonly("light_tracer_on", [](const Integrator& i) {
+        // the render passes trace photons (either mode; mpg's photon rate model)
+        return i.light_tracer() != nullptr;
       })
       .def_property_readonly("light_trace_off", [](const Integrator& i) {
         // why light_trace > 0 runs no light tracer ("" when it runs or was not asked)

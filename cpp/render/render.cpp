@@ -382,7 +382,21 @@ void RenderJob::run() {
     int nlt = cfg_.threads > 0 ? cfg_.threads : int(std::thread::hardware_concurrency());
     nlt = std::max(1, std::min(nlt, lt_blocks_));
     if (nlt > nthreads) stats.resize(size_t(nlt));
+    auto work = [&stats](uint64_t& rays, uint64_t& steps) {
+      rays = steps = 0;
+      for (const Stats& s : stats) {
+        rays += s.rays + s.shadow_rays + s.camera_rays + s.lt_rays;
+        steps += s.walk_steps;
+      }
+    };
+    uint64_t rays0, steps0, rays1, steps1;
+    work(rays0, steps0);
+    const auto lt0 = std::chrono::steady_clock::now();
     light_trace(stats, nlt);
+    result_.lt_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - lt0).count();
+    work(rays1, steps1);
+    result_.lt_work_rays = rays1 - rays0;
+    result_.lt_work_walk_steps = steps1 - steps0;
   }
   for (const Stats& s : stats) result_.stats.merge(s);
   result_.cancelled = cancel_.load();

@@ -799,3 +799,65 @@ def _negligible_chain_light(m2_raw: np.ndarray, var_t: np.ndarray, radius: int,
     `negligible` of the pixel's own variance per sample: the hand-off's
     "negligible" rule (learn_rates) and the guided trace's off pixels."""
     return _box_blur(m2_raw, radius) <= negligible * var_t
+
+
+# mpg's photons per camera sample, learned (light_trace / light_trace_glossy
+# "auto", the default): clamped to this range, and the pilot traces this many
+# photons (at least 1 and at most 64 per pixel) to measure them.
+PHOTON_RATE_MIN = 1.0 / 32
+PHOTON_RATE_MAX = 4.0
+PHOTON_PILOT = 65536
+
+
+def learn_photon_rate(cam_var: float, cam_cost: float, lt_sum: np.ndarray, lt_sum_sq: np.ndarray,
+                      photons: int, lt_cost: float, r0: float) -> tuple[float, dict]:
+    """Photons per camera sample r for the image's MSE after a fixed time
+    (design-notes "The photon rate, learned").
+
+    A render pass of s samples per pixel over P pixels traces N = r s P
+    photons; each photon is one independent sample of every pixel's light-
+    traced part (RenderJob::light_trace: the splat's pixel gets its value, the
+    others 0). Pixel p's variance is V_p / s from its camera samples (the rest
+    of its paths: the path tracer and the estimator leave the photons' paths
+    to them) plus v_p / N, v_p the variance of one photon's contribution to p.
+    The pass costs s P (c + r d), c and d the work of one camera sample and of
+    one photon (ray units, as the rates' model counts it: rays traced plus
+    STEP_COST per manifold-walk step; a count, so the rate, and the image, of
+    a render by spp do not depend on the machine's timing). The image's MSE
+    after a fixed time is then proportional
+    to F(r) = (mean_p V_p + mean_p v_p / (r P)) (c + r d), least at
+
+        r = sqrt(mean_p(v_p) c / (P mean_p(V_p) d))                    (Eq. 5)
+
+    (the balance of Eq. 1, for the photons as one more estimator of a fixed
+    share of the paths). cam_var: mean over the pixels (and RGB) of a camera
+    sample's variance; cam_cost: c; lt_sum / lt_sum_sq (height x width x 3):
+    the pilot's splat sums over `photons` photons, whose work was lt_cost (d =
+    lt_cost / photons); r0: the rate the pilot is compared with in the
+    info's predicted gain F(r0) / F(r). Any r > 0 leaves the image unbiased;
+    r is clamped to [PHOTON_RATE_MIN, PHOTON_RATE_MAX]: a pilot that saw no
+    photon land (v = 0) gets the minimum, a camera without variance the
+    maximum."""
+    n = float(photons)
+    p = float(lt_sum.shape[0] * lt_sum.shape[1])
+    info: dict = {}
+    if n < 1 or not (lt_cost > 0.0 and cam_cost > 0.0):
+        return r0, info
+    m = _finite(lt_sum) / n
+    v = float(np.mean(np.maximum(_finite(lt_sum_sq) / n - m * m, 0.0))) * (n / max(n - 1.0, 1.0))
+    a = float(cam_var) if np.isfinite(cam_var) else 0.0
+    c, d = float(cam_cost), float(lt_cost) / n
+    if v <= 0.0:
+        r = PHOTON_RATE_MIN
+    elif a <= 0.0:
+        r = PHOTON_RATE_MAX
+    else:
+        r = float(np.clip(np.sqrt(v * c / (p * a * d)), PHOTON_RATE_MIN, PHOTON_RATE_MAX))
+
+    def f(x: float) -> float:
+        return (a + v / (x * p)) * (c + x * d)
+
+    info.update(light_trace_learned=r, light_trace_model_v_camera=a, light_trace_model_v_photon=v / p,
+                light_trace_model_c_camera=c, light_trace_model_c_photon=d,
+                light_trace_model_gain=f(r0) / f(r) if f(r) > 0.0 else 1.0)
+    return r, info

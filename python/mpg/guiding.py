@@ -16,9 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, JOINT_MIN_SAMPLES, STEP_COST, CostAccumulator, _sample_variance,
-                             guided_trace_map, learn_delta_split, learn_pixel_split, learn_rates,
-                             learn_jointly, learn_rates_traced, delta_split_effect)
+from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, JOINT_MIN_SAMPLES, PHOTON_PILOT, STEP_COST, CostAccumulator,
+                             _sample_variance, guided_trace_map, learn_delta_split, learn_photon_rate,
+                             learn_pixel_split, learn_rates, learn_jointly, learn_rates_traced,
+                             delta_split_effect)
 from mpg.errors import RenderError
 
 
@@ -40,6 +41,17 @@ def _split_setting(name: str, value, words: tuple[str, ...]):
 # lower on slab, 1.53x pool, 1.39x double_slabs, 1.08x sphere, ring the same
 # (bench/results/compare-branch-suite; 3 levels did half as well on double_slabs).
 DELTA_BRANCH = 8
+
+# The photon rate the learned one is compared with in the stats'
+# light_trace_model_gain: the core's default for mpg in chain mode
+# (kMpgLightTrace, module.cpp), also the rate where none is learned
+DEFAULT_PHOTON_RATE = 0.25
+# The photon rate's pilot pass: camera samples per pixel (their variance: 2
+# gives each pixel's unbiased), and the training spp below which no pilot runs
+# and the core's default rate stays (the pilot's 2 spp are then more than
+# about 2.5 % of the render's: about 2.3x the training's spp at 30 %)
+PHOTON_PILOT_SPP = 2
+PHOTON_PILOT_MIN_TRAINING = 32
 
 # mpg's default max_chain (the longest chain the estimator, the guide and the
 # photons take; the core's default, sms_star's, is 6): with 8 the 8-refraction
@@ -170,6 +182,53 @@ def choose_step_halvings(stats: dict, n: int, variance: float, work: float, m_sc
     return -1, info
 
 
+def _learn_photon_rate(core, scene, params: dict, keys: list[str], guide, seed: int, threads: int | None,
+                       maps: dict) -> dict:
+    """The photons per camera sample for the render (Eq. 5), set in params as
+    the rate of the tracer's mode (light_trace, or light_trace_glossy) if that
+    is among the `keys` asked to learn ("auto"), from a pilot pass with the
+    render's integrator and maps: PHOTON_PILOT_SPP camera samples per pixel
+    (their variance) and PHOTON_PILOT photons (at least 1 and at most 64 per
+    pixel; their splats' moments), and the work of both (ray units). Its
+    image is not used (the rate must not depend on the render's own samples).
+    Where the render traces no photons, nothing is run."""
+    from mpg import _core
+
+    cam = scene.desc.camera
+    npix = int(cam.crop[2]) * int(cam.crop[3])
+    pilot_rate = min(64.0, max(1.0, PHOTON_PILOT / npix))   # (64: the core's most per sample)
+    integ = _core.make_integrator(core, "mpg", dict(params, guide=guide, record=False,
+                                                    **{key: pilot_rate for key in keys}))
+    # (the rate of the tracer's mode: a number given for it is used as is)
+    key = "light_trace_glossy" if integ.light_trace_glossy_on else "light_trace"
+    if not integ.light_tracer_on or key not in keys:
+        return {}
+    t = _time.monotonic()
+    job = _core.RenderJob(core, integ, PHOTON_PILOT_SPP, seed, 3_000_000, threads or 0, **maps)
+    while not job.wait(0.05):
+        pass
+    r = job.result()
+    if r["cancelled"] or r["lt_photons"] <= 0:
+        return {}
+    # a camera sample's variance as the render's are (its rates, splits and
+    # traces; the training passes' own, without the splits, at the training
+    # rate and with the early iterations' guides, gave rates 3-16x lower:
+    # docs/results.md, twenty-third session)
+    cam_var = float(np.mean(_sample_variance(r["sum"], r["sum_sq"], float(PHOTON_PILOT_SPP))))
+    # the work of the pass's camera samples and of its photons (ray units, as
+    # the rates' model counts: chain_rates._costs)
+    rs = r["stats"]
+    work = sum(rs.get(k, 0.0) for k in ("rays", "shadow_rays", "camera_rays", "lt_rays"))
+    lt_cost = float(r["lt_work_rays"]) + STEP_COST * float(r["lt_work_walk_steps"])
+    cam_cost = max(work + STEP_COST * rs.get("walk_steps", 0.0) - lt_cost, 0.0) / (npix * PHOTON_PILOT_SPP)
+    rate, info = learn_photon_rate(cam_var, cam_cost, r["lt_sum"], r["lt_sum_sq"], int(r["lt_photons"]),
+                                   lt_cost, DEFAULT_PHOTON_RATE)
+    params[key] = rate
+    info["seconds_photon_pilot"] = _time.monotonic() - t
+    info["photon_pilot"] = int(r["lt_photons"])
+    return info
+
+
 def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
                seed: int, threads: int | None, progress: bool | None, sampler: str = "independent",
                record_classes: bool = False):
@@ -177,6 +236,14 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     from mpg.render import _as_bool, render
 
     frac = float(params.pop("training_fraction", 0.3))
+    # light_trace / light_trace_glossy "auto" (mpg's default): the photons per
+    # camera sample are learned after training (chain_rates.learn_photon_rate,
+    # Eq. 5); the training passes' integrators keep the core's default rate
+    # (> 0: the same paths are left to the photons), a number is used as given
+    photon_auto = [key for key in ("light_trace", "light_trace_glossy")
+                   if str(params.get(key, "auto")).strip().lower() == "auto"]
+    for key in photon_auto:
+        params.pop(key, None)
     # alpha of Eq. 13 in the render (guide_fraction) and in the training passes
     params.setdefault("guide_fraction", GUIDE_FRACTION)
     if not 0.0 <= float(params["guide_fraction"]) < 1.0:
@@ -541,6 +608,13 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         rate_info["guided_trace_fraction"] = float(np.mean(gmap[qmap <= 0.0] > 0))
         traced = gmap[(qmap <= 0.0) & (gmap > 0)]
         rate_info["guided_trace_mean_k"] = float(np.mean(traced)) if traced.size else 0.0
+    photon_info: dict[str, Any] = {}
+    if photon_auto and spp_train >= PHOTON_PILOT_MIN_TRAINING:
+        photon_info = _learn_photon_rate(core, scene, params, photon_auto, guide, seed, threads,
+                                         dict(chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap,
+                                              guided_trace_map=gmap, stratify=sampler == "stratified"))
+        seconds_training = _time.monotonic() - t0   # (the pilot's time is the render's)
+        rest_t = None if time is None else max(0.05, time - seconds_training)
     img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
                  chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap, sampler=sampler,
@@ -551,6 +625,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["integrator_params"] = {k: v for k, v in params.items() if k != "guide"}
     st["integrator_params"]["chain_rate"] = rate
     st["integrator_params"]["step_halvings"] = halvings
+    for key in photon_auto:
+        st["integrator_params"][key] = "auto"   # (the learned rate: light_trace_learned)
     st.update(halvings_info)
     if auto_halvings:
         st["step_halvings_history"] = halvings_history   # the choice after each training iteration
@@ -559,6 +635,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # per-pixel: mean over the pixels with chain work; fixed: the rate used
     st["chain_rate_mean"] = float(params["chain_rate"])
     st.update(rate_info)
+    st.update(photon_info)
     st["spp_training"] = spp_train
     st["spp_rendering"] = img.spp
     st["training_iterations"] = iterations

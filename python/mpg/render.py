@@ -131,6 +131,15 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
                                   "with a given guide, chain_rate must be a number")
             core_params[k] = "auto"   # mpg: rates learned per pixel in training (mpg.chain_rates)
             continue
+        if k in ("light_trace", "light_trace_glossy") and str(core_params.get(k)).strip().lower() == "auto":
+            if name != "mpg":
+                raise RenderError(f"{k} 'auto' is learned by mpg's training loop; with '{name}' it must be "
+                                  "a number")
+            if "guide" in core_params:
+                del core_params[k]   # (a given guide: no training, the core's default rate)
+            else:
+                core_params[k] = "auto"   # mpg: learned after training (chain_rates.learn_photon_rate)
+            continue
         if k in core_params:
             try:
                 core_params[k] = float(core_params[k])
