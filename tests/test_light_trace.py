@@ -723,7 +723,9 @@ def test_mpg_learns_its_photon_rate_where_it_traces_photons(scenes_dir):
     assert one.stats["light_trace_learned"] == st["light_trace_learned"] and np.array_equal(one.rgb, img.rgb)
     assert PHOTON_RATE_MIN <= st["light_trace_learned"] <= PHOTON_RATE_MAX
     assert _photons_at(st, img.spp, 24 * 24)
-    assert st["photon_pilot"] >= min(PHOTON_PILOT, 64 * 24 * 24) and st["seconds_photon_pilot"] > 0
+    from mpg.guiding import PHOTON_PILOT_SPP
+    assert st["photon_pilot"] == PHOTON_PILOT_SPP * min(PHOTON_PILOT, 64 * 24 * 24)
+    assert st["seconds_photon_pilot"] > 0
     for k in ("v_camera", "v_photon", "c_camera", "c_photon"):
         assert st[f"light_trace_model_{k}"] > 0, k
     assert st["light_trace_model_gain"] >= 1.0
@@ -735,6 +737,11 @@ def test_mpg_learns_its_photon_rate_where_it_traces_photons(scenes_dir):
     assert _photons_at(short.stats, short.spp, 24 * 24, 0.25)
     with pytest.raises(mpg.RenderError, match="light_trace 'auto'"):
         mpg.render(sc, integrator={"type": "sms_star", "light_trace": "auto"}, spp=1, progress=False)
+    # the photons declined (a Gaussian pixel filter): trained, but no pilot
+    gauss = mpg.load_string(mirror_scene().replace('<rfilter type="box"/>', '<rfilter type="gaussian"/>'))
+    g = mpg.render(gauss, integrator="mpg", spp=256, seed=4, progress=False)
+    assert g.stats["spp_training"] >= PHOTON_PILOT_MIN_TRAINING and g.stats["lt_photons"] == 0
+    assert "light_trace_learned" not in g.stats and "photon_pilot" not in g.stats
     room = mpg.load_file(scenes_dir / "eval" / "diffuse_room.xml", res="16")
     plain = mpg.render(room, integrator="mpg", spp=8, seed=4, progress=False)
     assert "light_trace_learned" not in plain.stats and plain.stats["lt_photons"] == 0

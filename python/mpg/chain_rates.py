@@ -803,7 +803,8 @@ def _negligible_chain_light(m2_raw: np.ndarray, var_t: np.ndarray, radius: int,
 
 # mpg's photons per camera sample, learned (light_trace / light_trace_glossy
 # "auto", the default): clamped to this range, and the pilot traces this many
-# photons (at least 1 and at most 64 per pixel) to measure them.
+# photons per camera sample of its own (at least 1 and at most 64 per pixel
+# and sample; 2 x 65 536 with guiding.PHOTON_PILOT_SPP) to measure them.
 PHOTON_RATE_MIN = 1.0 / 32
 PHOTON_RATE_MAX = 4.0
 PHOTON_PILOT = 65536

@@ -188,10 +188,13 @@ def _learn_photon_rate(core, scene, params: dict, keys: list[str], guide, seed: 
     the rate of the tracer's mode (light_trace, or light_trace_glossy) if that
     is among the `keys` asked to learn ("auto"), from a pilot pass with the
     render's integrator and maps: PHOTON_PILOT_SPP camera samples per pixel
-    (their variance) and PHOTON_PILOT photons (at least 1 and at most 64 per
-    pixel; their splats' moments), and the work of both (ray units). Its
-    image is not used (the rate must not depend on the render's own samples).
-    Where the render traces no photons, nothing is run."""
+    (their variance) and PHOTON_PILOT photons per camera sample of the pilot
+    (at least 1 and at most 64 per pixel and sample; their splats' moments),
+    and the work of both (ray units). Its image is not used (the rate must not
+    depend on the render's own samples); its pixel positions are independent
+    ones even in a stratified render, whose per-pixel Sobol shift would give
+    it the render's first two (and two stratified samples would overstate one
+    sample's variance). Where the render traces no photons, nothing is run."""
     from mpg import _core
 
     cam = scene.desc.camera
@@ -612,8 +615,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     if photon_auto and spp_train >= PHOTON_PILOT_MIN_TRAINING:
         photon_info = _learn_photon_rate(core, scene, params, photon_auto, guide, seed, threads,
                                          dict(chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap,
-                                              guided_trace_map=gmap, stratify=sampler == "stratified"))
-        seconds_training = _time.monotonic() - t0   # (the pilot's time is the render's)
+                                              guided_trace_map=gmap))
+        # (the pilot's time comes off the render's budget; seconds_training
+        # includes it, seconds_photon_pilot says how much)
+        seconds_training = _time.monotonic() - t0
         rest_t = None if time is None else max(0.05, time - seconds_training)
     img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
