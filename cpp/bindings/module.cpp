@@ -180,7 +180,6 @@ py::dict pass_to_dict(PassResult& r) {
     put("delta_sum_sq", r.delta_sum_sq, rgb);
   }
   out["lt_photons"] = r.lt_photons;
-  out["lt_seconds"] = r.lt_seconds;
   out["lt_work_rays"] = r.lt_work_rays;
   out["lt_work_walk_steps"] = r.lt_work_walk_steps;
   if (r.lt_photons > 0) {   // the light tracer's splats (Integrator::light_tracer)

@@ -391,9 +391,7 @@ void RenderJob::run() {
     };
     uint64_t rays0, steps0, rays1, steps1;
     work(rays0, steps0);
-    const auto lt0 = std::chrono::steady_clock::now();
     light_trace(stats, nlt);
-    result_.lt_seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - lt0).count();
     work(rays1, steps1);
     result_.lt_work_rays = rays1 - rays0;
     result_.lt_work_walk_steps = steps1 - steps0;

@@ -66,8 +66,8 @@ struct PassResult {
   std::vector<double> lt_sum, lt_sum_sq;
   // ... and their work: the rays they traced (their paths and the splats'
   // visibility) and their manifold-walk steps (camera-side chains); mpg's
-  // photon rate model (chain_rates.learn_photon_rate)
-  double lt_seconds = 0.0;
+  // photon rate model (chain_rates.learn_photon_rate), which counts work
+  // rather than timing it
   uint64_t lt_work_rays = 0, lt_work_walk_steps = 0;
   Stats stats;
   double seconds = 0.0;
