@@ -242,6 +242,8 @@ constexpr bool kMpgLightTraceArea = true;
 // ... and in glossy mode, where the photons are the caustics' only estimator
 // (docs/results.md, "Glossy casters' photons": 0.25 / 0.5 / 1 on plane)
 constexpr float kMpgLightTraceGlossy = 0.5f;
+// ... and its glints: lights under this many pixels across (docs/results.md, "Glints")
+constexpr float kMpgGlints = 2.f;
 
 std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, const std::string& type,
                                             const py::dict& p) {
@@ -267,6 +269,10 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
   if (!(pp.light_trace_glossy >= 0.f && pp.light_trace_glossy <= 64.f))
     throw std::invalid_argument("light_trace_glossy must be in [0, 64] photons per camera sample, got " +
                                 std::to_string(pp.light_trace_glossy));
+  pp.glints = get<float>(p, "glints", type == "mpg" ? kMpgGlints : 0.f);
+  if (!(pp.glints >= 0.f && pp.glints <= 1e6f))
+    throw std::invalid_argument("glints must be >= 0 (the largest light, in pixels, whose glints are walked; 0: off), got " +
+                                std::to_string(pp.glints));
   if (!(pp.light_trace >= 0.f && pp.light_trace <= 64.f))
     throw std::invalid_argument("light_trace must be in [0, 64] photons per camera sample, got " +
                                 std::to_string(pp.light_trace));
@@ -680,6 +686,15 @@ PYBIND11_MODULE(_core, m) {
         // the light tracer runs in glossy mode (no chain estimator; LightTracer)
         const LightTracer* lt = i.light_tracer();
         return lt != nullptr && lt->glossy();
+      })
+      .def_property_readonly("glint_emitters", [](const Integrator& i) {
+        // the emitters (scene indices) whose glints the walks take ([] when off)
+        auto* p = dynamic_cast<const PathIntegrator*>(&i);
+        return p && p->glints_on() ? p->glint_lights().emitters : std::vector<int>();
+      })
+      .def_property_readonly("glint_max_chain", [](const Integrator& i) {
+        auto* p = dynamic_cast<const PathIntegrator*>(&i);
+        return p && p->glints_on() ? p->glint_lights().mmax : 0;
       })
       .def_property_readonly("light_tracer_on", [](const Integrator& i) {
         // the render passes trace photons (either mode; mpg's photon rate model)

@@ -15,10 +15,23 @@ class Integrator {
   // Radiance along a camera ray whose first hit `si` is already known.
   virtual Color Li_hit(const Scene& scene, const Vec3& o, const Vec3& d, SurfaceInteraction si,
                        PCG32& rng, Stats& stats) const = 0;
+  // ... and, with glints on, the glints' estimate from the same ray and first
+  // hit (after the path, so the path's random numbers stay as without them;
+  // stats.sample_glint holds it). Stats::film_x/film_y: the ray's pixel.
   Color Li(const Scene& scene, const Vec3& o, const Vec3& d, float tmin, float tmax, PCG32& rng,
            Stats& stats) const {
     stats.rays++;
-    return Li_hit(scene, o, d, scene.intersect(o, d, tmin, tmax), rng, stats);
+    stats.sample_glint = Color(0.f);
+    if (!glints_on()) return Li_hit(scene, o, d, scene.intersect(o, d, tmin, tmax), rng, stats);
+    const SurfaceInteraction si = scene.intersect(o, d, tmin, tmax);
+    Color L = Li_hit(scene, o, d, si, rng, stats);
+    stats.sample_glint = glint(o, d, si, rng, stats);
+    return L + stats.sample_glint;
+  }
+  // The glints (ChainEstimator::glint): whether they run, and one estimate.
+  virtual bool glints_on() const { return false; }
+  virtual Color glint(const Vec3&, const Vec3&, const SurfaceInteraction&, PCG32&, Stats&) const {
+    return Color(0.f);
   }
   // Only the light reaching the camera through delta scattering (the extra
   // paths of Stats::split_delta); integrators that do not split return 0.

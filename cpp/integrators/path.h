@@ -53,6 +53,11 @@ struct PathParams {
   // from every point, spot and area light (LightTracer's glossy mode) and the
   // path tracer drops those paths (0: off)
   float light_trace_glossy = 0.f;
+  // Glints (ChainEstimator::glint; chain integrators only; 0: off): the area
+  // chain lights whose angular size is below this many pixels are found from
+  // the camera through chains by walks (the path tracer drops its paths
+  // camera -> 1..mmax chain vertices -> such a light).
+  float glints = 0.f;
 };
 
 // With a ChainEstimator (integrators `sms` and `sms_star`) every separator also
@@ -80,8 +85,14 @@ class PathIntegrator : public Integrator {
       if (lt->usable()) lt_ = std::move(lt);
       else lt_off_ = lt->why();
     }
+    if (chains_ && p_.glints > 0.f) gl_ = chains_->glint_lights(p_.glints, p_.max_depth);
   }
   const LightTracer* light_tracer() const override { return lt_.get(); }
+  bool glints_on() const override { return gl_.usable(); }
+  const ChainEstimator::GlintLights& glint_lights() const { return gl_; }
+  Color glint(const Vec3& o, const Vec3& d, const SurfaceInteraction& si, PCG32& rng, Stats& st) const override {
+    return chains_->glint(gl_, o, d, si, st.film_x, st.film_y, rng, st);
+  }
   // Why light_trace > 0 runs no light tracer ("" when it runs or was not asked)
   const std::string& light_trace_off() const { return lt_off_; }
   bool chains_active() const { return chains_ != nullptr; }
@@ -156,11 +167,17 @@ class PathIntegrator : public Integrator {
   // trace in Only mode from the hit si of direction d, with branching at the
   // next `levels` two-lobe delta vertices (PathParams::delta_branch).
   Color delta_tree(const Scene& scene, SurfaceInteraction si, Vec3 d, Color beta, uint32_t depth, float eta,
-                   int levels, PCG32& rng, Stats& stats) const;
+                   int levels, PCG32& rng, Stats& stats, bool chain_prefix = true) const;
   PathParams p_;
   std::shared_ptr<const ChainEstimator> chains_;
   std::shared_ptr<const LightTracer> lt_;   // (holds a reference to *chains_, none in glossy mode)
   std::string lt_off_;
+  ChainEstimator::GlintLights gl_;   // (usable() false: no glints)
+  // Is a light hit after `depth` vertices, all chain vertices (delta,
+  // not null), the glints' path? (path.cpp drops it)
+  bool glint_path(uint32_t depth, bool chain_prefix, int emitter) const {
+    return gl_.usable() && chain_prefix && depth >= 1 && int(depth) <= gl_.mmax && gl_.owns(emitter);
+  }
 };
 
 }  // namespace mpg

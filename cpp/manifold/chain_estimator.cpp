@@ -1054,6 +1054,221 @@ bool ChainEstimator::connect_point(const DVec3& xD, const DVec3& nD, const DVec3
   return std::isfinite(weight.x) && std::isfinite(weight.y) && std::isfinite(weight.z);
 }
 
+// ---- Glints (chain_estimator.h, "The glints"; docs/design-notes.md, "Glints") ----
+
+namespace {
+// Seeds whose ray after the chain passes farther than this many times the
+// larger of the light's radius and a pixel's footprint at the light skip the
+// walk (a cost control, part of the seed process the trials repeat).
+constexpr double kGlintCapture = 4.0;
+bool glint_captured(const DVec3& o, const DVec3& d, const DVec3& c, double r) {
+  const DVec3 oc = c - o;
+  const double t = glm::dot(oc, d);
+  if (!(t > 0.0)) return false;
+  return glm::dot(oc, oc) - t * t < r * r;
+}
+}  // namespace
+
+ChainEstimator::GlintLights ChainEstimator::glint_lights(float max_pixels, int max_depth) const {
+  GlintLights gl;
+  if (!active_ || !(max_pixels > 0.f)) return gl;
+  const Camera& cam = scene_.camera;
+  if (cam.filter.type != FilterSampler::Type::Box || std::abs(cam.filter.radius - 0.5f) > 1e-6f) return gl;
+  // m chain vertices and the light: m + 1 segments
+  const int mmax = max_depth < 0 ? p_.max_chain : std::min(p_.max_chain, max_depth - 1);
+  if (mmax < 1) return gl;
+  Vec3 lo(kInf), hi(-kInf);
+  for (size_t s = 0; s < scene_.shapes.size(); ++s) {
+    if (!specular_shape_[s]) continue;
+    const Shape& sh = scene_.shapes[s];
+    if (sh.kind == Shape::Kind::Sphere) {
+      lo = glm::min(lo, sh.center - Vec3(sh.radius));
+      hi = glm::max(hi, sh.center + Vec3(sh.radius));
+    } else {
+      for (const Vec3& q : sh.positions) {
+        lo = glm::min(lo, q);
+        hi = glm::max(hi, q);
+      }
+    }
+  }
+  if (!(lo.x <= hi.x)) return gl;
+  const DVec3 chain_c = 0.5 * (to_d(lo) + to_d(hi));
+  gl.cam_o = to_d(Vec3(cam.to_world * Vec4(0.f, 0.f, 0.f, 1.f)));
+  gl.cam_fwd = glm::normalize(to_d(Vec3(cam.to_world * Vec4(0.f, 0.f, 1.f, 0.f))));
+  gl.to_local = glm::inverse(cam.to_world);
+  const double px = 2.0 * double(cam.tan_half_x) / cam.width, py = 2.0 * double(cam.tan_half_y) / cam.height;
+  gl.a_pix = px * py;
+  const double pix = std::min(px, py);   // a pixel's angle at the image centre
+  if (!(gl.a_pix > 0.0)) return gl;
+  gl.owned.assign(scene_.emitters.size(), 0);
+  std::vector<float> w;
+  for (int e : chain_lights_) {
+    const Emitter& em = scene_.emitters[size_t(e)];
+    if (em.type != Emitter::Type::Area || em.shape < 0 || !(em.power > 0.f) || !std::isfinite(em.power)) continue;
+    const Shape& sh = scene_.shapes[size_t(em.shape)];
+    if (!(sh.area > 0.f)) continue;
+    DVec3 c(0.0);
+    double r = 0.0;
+    if (sh.kind == Shape::Kind::Sphere) {
+      c = to_d(sh.center);
+      r = double(sh.radius);
+    } else {
+      Vec3 a(kInf), b(-kInf);
+      for (const Vec3& q : sh.positions) {
+        a = glm::min(a, q);
+        b = glm::max(b, q);
+      }
+      if (!(a.x <= b.x)) continue;
+      c = 0.5 * (to_d(a) + to_d(b));
+      for (const Vec3& q : sh.positions) r = std::max(r, glm::length(to_d(q) - c));
+    }
+    const double len = glm::length(chain_c - gl.cam_o) + glm::length(c - chain_c);
+    if (!(len > 0.0) || !(2.0 * r / len < double(max_pixels) * pix)) continue;
+    gl.owned[size_t(e)] = 1;
+    gl.emitters.push_back(e);
+    gl.centre.push_back(c);
+    gl.capture.push_back(kGlintCapture * std::max(r, len * pix));
+    w.push_back(em.power);
+  }
+  if (w.empty()) return gl;
+  gl.dist.build(w);
+  gl.mmax = mmax;
+  return gl;
+}
+
+int ChainEstimator::glint_seed(const DVec3& o, const SurfaceInteraction& first, const Vec3& d,
+                               int m, PCG32& rng, ManifoldChain& chain, std::string& tau, std::vector<DVec3>& dirs,
+                               const std::string* want_tau, Stats& st) const {
+  chain.xD = o;
+  chain.nD = DVec3(0.0);   // the pinhole: no offset, no chart
+  chain.v.clear();
+  tau.clear();
+  dirs.clear();
+  SurfaceInteraction si = first;
+  DVec3 dd = glm::normalize(to_d(d));
+  for (int i = 0; i < m; ++i) {
+    if (i > 0) {
+      const ManifoldVertex& pv = chain.v.back();
+      st.rays++;
+      si = scene_.intersect(offset_ray_origin(to_f(pv.p), to_f(pv.ng), to_f(dd)), to_f(dd), 0.f, kInf);
+    }
+    st.walk_steps++;
+    // the path tracer's chain vertices: chain shapes with smooth BSDFs (a
+    // glossy one needs offsets: not a glint; the path tracer keeps those paths)
+    if (!si.valid || !is_chain_shape(si.shape)) return i;
+    ManifoldVertex v;
+    if (!walk_.make_vertex(si, true, v)) return i;
+    const DVec3 wi = -dd;
+    bool reflect = true;
+    if (v.dielectric) reflect = rng.next_float() < fresnel_dielectric(float(glm::dot(wi, v.n)), float(v.eta)).F;
+    if (want_tau && size_t(i) < want_tau->size() && (reflect ? 'R' : 'T') != (*want_tau)[size_t(i)]) {
+      st.trials_tau_cut++;
+      return i;
+    }
+    v.reflect = reflect;
+    if (!ManifoldWalk::scatter(wi, v.n, v.eta, reflect, dd)) return i;
+    tau.push_back(reflect ? 'R' : 'T');
+    chain.v.push_back(v);
+    dirs.push_back(dd);
+  }
+  return m;
+}
+
+Color ChainEstimator::glint(const GlintLights& gl, const Vec3& o, const Vec3& d, const SurfaceInteraction& si,
+                            int fx, int fy, PCG32& rng, Stats& st) const {
+  Color sum(0.f);
+  if (!gl.usable() || !si.valid || !is_chain_shape(si.shape)) return sum;
+  const auto t0 = Clock::now();
+  const uint64_t steps0 = st.walk_steps;
+  st.glint_seeds++;
+  // x_L: a light by power, a point uniform by area
+  float ul = rng.next_float();
+  const size_t k = gl.dist.sample(ul);
+  const Emitter& em = scene_.emitters[size_t(gl.emitters[k])];
+  const Shape& ls = scene_.shapes[size_t(em.shape)];
+  Vec3 lp, ln;
+  ls.sample_position(Vec2(rng.next_float(), rng.next_float()), lp, ln);
+  const double pdf = double(gl.dist.pmf(k)) / double(ls.area);
+  const DVec3 xL = to_d(lp), nL = to_d(ln);
+  const Camera& cam = scene_.camera;
+  ManifoldChain seed;
+  std::string letters;
+  thread_local std::vector<DVec3> dirs, dirs2;
+  const int got = glint_seed(to_d(o), si, d, gl.mmax, rng, seed, letters, dirs, nullptr, st);
+  for (int m = 1; m <= got; ++m) {
+    if (!glint_captured(seed.v[size_t(m - 1)].p, dirs[size_t(m - 1)], gl.centre[k], gl.capture[k])) continue;
+    ManifoldChain chain;
+    chain.xD = seed.xD;
+    chain.nD = seed.nD;
+    chain.v.assign(seed.v.begin(), seed.v.begin() + m);
+    chain.xL = xL;
+    chain.nL = nL;
+    st.glint_walks++;
+    const WalkResult r = walk_.solve(chain);
+    count_walk(r, m, st, nullptr);
+    if (!r.converged) {
+      st.walk_failures[size_t(r.failure)]++;
+      continue;
+    }
+    // where the camera sees the solution: this sample's pixel, or another's
+    const DVec3 w_star = glm::normalize(chain.v[0].p - chain.xD);
+    const Vec4 q = gl.to_local * Vec4(to_f(chain.v[0].p), 1.f);
+    if (!(q.z > 0.f)) continue;
+    const double fxs = 0.5 * (1.0 - double(q.x / q.z) / cam.tan_half_x) * cam.width;
+    const double fys = 0.5 * (1.0 - double(q.y / q.z) / cam.tan_half_y) * cam.height;
+    if (!(std::floor(fxs) == double(fx) && std::floor(fys) == double(fy))) continue;
+    const double cos_c = glm::dot(w_star, gl.cam_fwd);
+    if (!(cos_c > 0.0)) continue;
+    const ManifoldVertex& last = chain.v.back();
+    if (glm::dot(last.p - xL, nL) <= 0.0) continue;   // one-sided light
+    const std::string tau = letters.substr(0, size_t(m));
+    const Color kap = kappa(chain, tau);
+    if (is_black(kap)) continue;
+    st.shadow_rays++;
+    if (scene_.occluded_to(to_f(last.p), to_f(last.ng), lp)) continue;
+    double G = 0.0;
+    if (!walk_.geometry_area(chain, G) || !(G > 0.0)) continue;
+    // K: seeds from a uniform point of this pixel until one finds (tau, w*)
+    bool capped = false;
+    const auto tb = Clock::now();
+    const int K = bernoulli_count(
+        [&]() {
+          st.bernoulli_trials++;
+          st.glint_trials++;
+          const float u0 = rng.next_float(), u1 = rng.next_float();
+          Vec3 o2, d2;
+          float tmin, tmax;
+          cam.generate_ray(Vec2(float(fx) + u0, float(fy) + u1), o2, d2, tmin, tmax);
+          st.rays++;
+          const SurfaceInteraction s2 = scene_.intersect(o2, d2, tmin, tmax);
+          ManifoldChain c2;
+          std::string t2;
+          if (glint_seed(to_d(o2), s2, d2, m, rng, c2, t2, dirs2, &tau, st) < m) return false;
+          if (!glint_captured(c2.v[size_t(m - 1)].p, dirs2[size_t(m - 1)], gl.centre[k], gl.capture[k])) return false;
+          c2.xL = xL;
+          c2.nL = nL;
+          const WalkResult r2 = walk_.solve(c2);
+          count_walk(r2, m, st, nullptr);
+          if (!r2.converged) return false;
+          return glm::length(glm::normalize(c2.v[0].p - c2.xD) - w_star) < p_.uniqueness_threshold;
+        },
+        p_.max_trials, capped);
+    st.bernoulli_ns += ns_since(tb);
+    if (capped) st.bernoulli_capped++;
+    const double scale = G * double(K) / (pdf * gl.a_pix * cos_c * cos_c * cos_c);
+    const Color v = kap * em.value * float(scale);
+    if (!(std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z))) {
+      st.glint_rejected++;
+      continue;
+    }
+    st.glint_found++;
+    sum += v;
+  }
+  st.chain_ns += ns_since(t0);
+  st.chain_steps += st.walk_steps - steps0;
+  return sum;
+}
+
 uint64_t ChainEstimator::trace_photons(uint64_t count, uint64_t seed,
                                        std::vector<SubpathSample>& out) const {
   if (!active_) return 0;

@@ -197,6 +197,47 @@ class ChainEstimator {
            std::max(b.mf.ax, b.mf.ay) < glossy_threshold;
   }
 
+  // The glints: the small area lights seen from the camera through chain
+  // vertices only (docs/design-notes.md, "Glints"). A light whose angular
+  // size is below a few pixels is a glint in the glass: the path tracer finds
+  // it only where a camera sample lands in its tiny image (variance L^2 c for
+  // a pixel it covers a fraction c of), so these paths, camera -> 1..mmax
+  // chain vertices -> such a light, are this estimator's instead and the path
+  // tracer drops them (path.cpp). Per camera sample: x_L uniform by area on
+  // an owned light, the sample's own camera ray as the seed (letters by
+  // Fresnel), a walk with the pinhole and x_L fixed, and where the solution
+  // is seen in the sample's pixel, the pixel's value
+  //   Le kappa G K / (p(x_L) A_pix cos^3 theta)                      (1)
+  // G = |d omega_camera / dA_L| (geometry_area with x_D the pinhole), K the
+  // Bernoulli count of 1/P over seeds from the same pixel (supplemental Sec.
+  // 3.2), A_pix the pixel's area on the film at unit distance (a box filter
+  // of one pixel: the pixel value is the mean radiance over its area, dA =
+  // d omega / cos^3 theta). One walk per chain length m whose seed ray after
+  // vertex m passes within `capture` of the light's centre (a part of the
+  // seed process, which the trials repeat: a solution's own ray passes, so
+  // every solution keeps P > 0).
+  struct GlintLights {
+    int mmax = 0;                 // longest chain (camera side: m + 1 segments <= max_depth)
+    std::vector<int> emitters;    // the owned lights
+    std::vector<char> owned;      // emitter index -> owned
+    std::vector<DVec3> centre;    // per owned light: its bounding sphere's centre
+    std::vector<double> capture;  // ... and the seed's capture radius around it
+    DiscreteDistribution dist;    // by power
+    Mat4 to_local{1.f};
+    DVec3 cam_o{0.0}, cam_fwd{0.0, 0.0, 1.0};
+    double a_pix = 0.0;
+    bool usable() const { return mmax > 0 && !emitters.empty(); }
+    bool owns(int e) const { return e >= 0 && size_t(e) < owned.size() && owned[size_t(e)] != 0; }
+  };
+  // The area chain lights whose angular diameter, seen over the path camera ->
+  // chain shapes' centre -> light, is below max_pixels pixels (none with a
+  // filter other than a one-pixel box, or max_pixels <= 0).
+  GlintLights glint_lights(float max_pixels, int max_depth) const;
+  // (1) for one camera sample: its ray (o, d) from film pixel (fx, fy) and
+  // first hit si. 0 where the hit is not a chain shape.
+  Color glint(const GlintLights& gl, const Vec3& o, const Vec3& d, const SurfaceInteraction& si, int fx, int fy,
+              PCG32& rng, Stats& st) const;
+
   // Photon initialisation (MPG supplemental Sec. 2): trace `count` photons from
   // the chain emitters through chain vertices; each that lands on a separator
   // after 1..max_chain chain vertices becomes a sub-path sample (x_D = landing
@@ -306,6 +347,12 @@ class ChainEstimator {
              const std::vector<Vec2>& offsets, const ChainDistribution* guide, PCG32& rng,
              ManifoldChain& chain, std::string& tau, Stats& st,
              TrialTally* tally = nullptr, const std::string* want_tau = nullptr) const;
+  // A glint seed continued from the camera ray's first hit: up to m chain
+  // vertices, letters by Fresnel (want_tau: stop at the first other letter);
+  // dirs[i] the ray leaving vertex i. Returns the vertices traced.
+  int glint_seed(const DVec3& o, const SurfaceInteraction& first, const Vec3& d, int m,
+                 PCG32& rng, ManifoldChain& chain, std::string& tau, std::vector<DVec3>& dirs,
+                 const std::string* want_tau, Stats& st) const;
   // (eta2: if given, the product of the transmissions' (eta_i / eta_t)^2 from x_D toward x_L)
   Color kappa(const ManifoldChain& chain, const std::string& tau, bool flux = false, double* eta2 = nullptr) const;
   // The leaf of (x_D, x_L), or null (no guide, or an empty leaf).

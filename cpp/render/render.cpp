@@ -150,6 +150,8 @@ void RenderJob::run() {
           double ts[Stats::kTraceKs][3] = {}, ts2[Stats::kTraceKs][3] = {}, tvar[Stats::kTraceKs] = {}, thits = 0;
           double tn = 0;   // samples that recorded the traces
           double ttail[Stats::kTraceKs + 1] = {}, tseen[Stats::kTraceKs + 1] = {}, tchain[3] = {};
+          st.film_x = fx;
+          st.film_y = fy;
           st.pixel_chain_rate = qmap ? (*qmap)[size_t(y) * W + x] : -1.f;
           st.pixel_trace_k = gmap ? int((*gmap)[size_t(y) * W + x]) : -1;
           st.pixel_chain_m2 = 0.0;
@@ -199,6 +201,7 @@ void RenderJob::run() {
                 // the light seen through delta scattering only: the path's own,
                 // or the split's mean below
                 if (ksplit <= 1) cls[Stats::kClassDelta] += st.sample_delta_L;
+                cls[Stats::kClassGlints] += st.sample_glint;
               }
               if (ksplit > 1) {
                 // The light seen through delta scattering only, left out of Ls:

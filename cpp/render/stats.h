@@ -68,10 +68,10 @@ struct Stats {
   // take them: a type their leaf never saw (known_types), no leaf with
   // unfiltered samples (selective activation), not owned (a length or light
   // the estimator does not produce); the worker adds the light seen through
-  // delta scattering only and the rest (bench/error_classes.py)
-  static constexpr int kClasses = 9;
+  // delta scattering only, the rest and the glints (bench/error_classes.py)
+  static constexpr int kClasses = 10;
   enum Class { kClassChain = 0, kClassShared, kClassTraced, kClassHanded, kClassUnseen, kClassInactive,
-               kClassUnowned, kClassDelta, kClassOther };
+               kClassUnowned, kClassDelta, kClassOther, kClassGlints };
   bool record_classes = false;
   Color sample_class[kClasses] = {};
   void add_class(int c, const Color& v) {
@@ -141,6 +141,11 @@ struct Stats {
   // light seen in the glass").
   Color sample_delta_L{0.f};
   bool split_delta = false;
+  // Set by the render worker per pixel (not merged): its film pixel, which
+  // the glints' Bernoulli trials draw their seeds from; and per camera sample
+  // the glints' part of Li's value (Integrator::Li; a class of its own).
+  int film_x = -1, film_y = -1;
+  Color sample_glint{0.f};
   uint64_t samples = 0;
   uint64_t camera_rays = 0;
   uint64_t rays = 0;           // intersection queries
@@ -198,6 +203,11 @@ struct Stats {
   uint64_t lt_photons = 0, lt_rays = 0, lt_splats = 0;
   uint64_t lt_chain_tries = 0, lt_chain_splats = 0;   // connections to the camera through glass (light_trace_through)
   uint64_t lt_rejected = 0;          // splats not finite or negative (dropped, counted)
+  // glints (ChainEstimator::glint): camera samples whose first hit was a chain
+  // shape, walks run, estimates found in their pixel, Bernoulli trials,
+  // non-finite estimates dropped, path-tracer light hits the glints bring
+  uint64_t glint_seeds = 0, glint_walks = 0, glint_found = 0, glint_trials = 0, glint_rejected = 0;
+  uint64_t glint_pt_dropped = 0;
   uint64_t lt_pt_dropped = 0;        // path-tracer contributions (light hits; glossy mode: NEE too) whose path the photons bring
   uint64_t guided_traces = 0;        // handoff_guided: traces drawn from a leaf in rate-0 pixels (and training's records)
   uint64_t guided_trace_hits = 0;    // ... that reached their light through the drawn letters
@@ -236,6 +246,8 @@ struct Stats {
     chain_handed += o.chain_handed;
     chain_lt_skipped += o.chain_lt_skipped;
     lt_pt_dropped += o.lt_pt_dropped;
+    glint_seeds += o.glint_seeds; glint_walks += o.glint_walks; glint_found += o.glint_found;
+    glint_trials += o.glint_trials; glint_rejected += o.glint_rejected; glint_pt_dropped += o.glint_pt_dropped;
     lt_photons += o.lt_photons; lt_rays += o.lt_rays; lt_splats += o.lt_splats; lt_rejected += o.lt_rejected;
     lt_chain_tries += o.lt_chain_tries; lt_chain_splats += o.lt_chain_splats;
     guided_traces += o.guided_traces;
@@ -273,6 +285,9 @@ struct Stats {
             {"chain_handed", double(chain_handed)},
             {"chain_lt_skipped", double(chain_lt_skipped)},
             {"lt_pt_dropped", double(lt_pt_dropped)},
+            {"glint_seeds", double(glint_seeds)}, {"glint_walks", double(glint_walks)},
+            {"glint_found", double(glint_found)}, {"glint_trials", double(glint_trials)},
+            {"glint_rejected", double(glint_rejected)}, {"glint_pt_dropped", double(glint_pt_dropped)},
             {"lt_photons", double(lt_photons)}, {"lt_rays", double(lt_rays)},
             {"lt_splats", double(lt_splats)}, {"lt_rejected", double(lt_rejected)},
             {"lt_chain_tries", double(lt_chain_tries)}, {"lt_chain_splats", double(lt_chain_splats)},

@@ -182,6 +182,13 @@ def _run(args) -> int:
             print(f"mpg-render: light traced the caustics the camera sees: {st['lt_photons']} photons, "
                   f"{st.get('lt_splats', 0)} reached the camera ({st.get('lt_chain_splats', 0)} of them "
                   f"through glass)", file=sys.stderr)
+        if st.get("glint_seeds"):
+            print(f"mpg-render: walked the small lights' glints seen in the glass: {st.get('glint_walks', 0)} "
+                  f"walks from {st['glint_seeds']} camera samples, {st.get('glint_found', 0)} found in their "
+                  f"pixel ({st.get('glint_pt_dropped', 0)} path-tracer hits left to them)", file=sys.stderr)
+        if st.get("glint_rejected"):
+            print(f"mpg-render: rejected {st['glint_rejected']} glint estimates with NaN/Inf values",
+                  file=sys.stderr)
         if st["rejected_samples"]:
             print(f"mpg-render: rejected {st['rejected_samples']} samples with NaN/Inf/negative "
                   f"values (NaN {st.get('rejected_nan', 0)}, Inf {st.get('rejected_inf', 0)}, "

@@ -22,13 +22,13 @@ from mpg.scene.desc import IntegratorDesc, SceneDesc
 IMPLEMENTED = {"path", "sms", "sms_star", "mpg"}
 # Image.class_sum's classes in order (Stats::Class; render(record_classes=True))
 CLASS_NAMES = ("chain", "shared", "traced", "handed", "unseen", "inactive", "unowned", "delta", "other",
-               "photons")
+               "glints", "photons")
 
 PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters", "camera_delta", "delta_branch"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
                 "threshold", "max_iterations", "min_step", "step_halvings", "form", "glossy_threshold",
                 "mis", "mis_rate", "chain_rate", "light_trace", "light_trace_through",
-                "light_trace_area", "light_trace_glossy"}
+                "light_trace_area", "light_trace_glossy", "glints"}
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
                 "guide_dir", "training_fraction", "training_guide_fraction", "stree_c", "stree_epsilon", "stree_filter",
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons",
