@@ -219,3 +219,16 @@ def test_mpg_render_reports_the_glints(tmp_path, capsys, scenes_dir):
     assert rc == 0 and (tmp_path / "a.exr").exists()
     err = capsys.readouterr().err
     assert "walked the small lights' glints seen in the glass" in err and "found in their pixel" in err
+
+
+def test_glints_from_the_command_line(tmp_path, capsys, scenes_dir):
+    from mpg.cli import main
+
+    scene = str(scenes_dir / "eval" / "emitter_size_001.xml")
+    rc = main([scene, "-D", "res=16", "--spp", "4", "--integrator", "mpg", "-P", "glints=0",
+               "-o", str(tmp_path / "a.exr"), "--no-preview"])
+    assert rc == 0 and "walked the small lights" not in capsys.readouterr().err
+    rc = main([scene, "-D", "res=16", "--spp", "4", "--integrator", "mpg", "-P", "glints=abc",
+               "-o", str(tmp_path / "b.exr"), "--no-preview"])
+    err = capsys.readouterr().err
+    assert rc != 0 and "glints" in err and "abc" in err and not (tmp_path / "b.exr").exists()

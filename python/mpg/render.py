@@ -124,7 +124,7 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
               "guide_fraction", "training_guide_fraction", "training_fraction", "stree_c",
               "stree_epsilon", "chain_rate",
               "chain_rate_min", "chain_rate_train", "chain_handoff_negligible", "light_trace",
-              "light_trace_glossy"):
+              "light_trace_glossy", "glints"):
         if k == "chain_rate" and name == "mpg" and str(core_params.get(k)).strip().lower() == "auto":
             if "guide" in core_params:
                 raise RenderError("chain_rate 'auto' is learned by mpg's training loop; "
