@@ -232,3 +232,45 @@ def test_glints_from_the_command_line(tmp_path, capsys, scenes_dir):
                "-o", str(tmp_path / "b.exr"), "--no-preview"])
     err = capsys.readouterr().err
     assert rc != 0 and "glints" in err and "abc" in err and not (tmp_path / "b.exr").exists()
+
+
+def test_exclude_and_only_split_the_glints_too():
+    """camera_delta exclude leaves out every path seen through delta scattering
+    only, the glints' included; only renders them (with the glints): the two
+    add up to all."""
+    from types import SimpleNamespace
+    sc = mpg.load_string(mirror_light_scene(bsdf=GLASS_BSDF))
+    ims = {m: mpg.render(sc, {"type": "sms_star", "glints": 100.0, "camera_delta": m}, spp=256, seed=8,
+                         progress=False) for m in ("all", "exclude", "only")}
+    assert ims["exclude"].stats["glint_seeds"] == 0 and ims["only"].stats["glint_found"] > 0
+    assert ims["all"].stats["glint_found"] > 0
+    e, o = ims["exclude"], ims["only"]
+    both = SimpleNamespace(rgb=e.rgb.astype(np.float64) + o.rgb, variance=e.variance.astype(np.float64) + o.variance)
+    assert image_zmax(ims["all"], both, REGIONS_24) < 5
+    # the glints are in `only`: exclude has no light there
+    assert o.rgb.sum() > 0 and e.rgb.sum() < 1e-3 * o.rgb.sum()
+
+
+def test_the_delta_splits_branched_paths_leave_the_glints_to_the_walks():
+    """The delta split's extra paths (Li_delta, branched at the glass: the
+    reflection that sees the light and the refraction) drop the glints'
+    paths as the camera path does: with a split of 4 everywhere the glint of
+    a 0.5-px light in glass still matches the closed form (kept, the branched
+    reflections would count it twice)."""
+    from types import SimpleNamespace
+    from stats_util import run_pass
+    r_, fov, aim_z, spp = 0.05, 60.0, 1.0, 8192
+    sc = mpg.load_string(mirror_light_scene(radius=r_, fov=fov, aim_z=aim_z, max_depth=2, bsdf=GLASS_BSDF))
+    r = run_pass(sc, "sms_star", spp, 9, {"glints": 100.0, "delta_branch": 2, "max_depth": 2},
+                 delta_split_map=np.full((RES, RES), 4, np.float32))
+    st = r["stats"]
+    assert st["delta_split_paths"] > 0 and st["delta_branches"] > 0 and st["glint_found"] > 0
+    assert st["glint_pt_dropped"] > 0
+    m = r["sum"] / spp
+    split = SimpleNamespace(rgb=m, variance=np.maximum(r["sum_sq"] / spp - m * m, 0) / (spp - 1))
+    D = 2 * np.sqrt(5.0)
+    exact = MIRROR_LE * _fresnel(2 / np.sqrt(5.0), 1.5) * 2 * np.pi * (1 - D / np.sqrt(D * D + r_ * r_))
+    C, M, T = np.array([-1.0, 2, 0]), np.zeros(3), np.array([0, 0, aim_z])
+    cos_img = np.dot(M - C, T - C) / np.linalg.norm(M - C) / np.linalg.norm(T - C)
+    got, se = _solid_angle_sum(split, cos_img, fov=fov)
+    assert abs(got - exact) < 5 * se + 1e-3 * exact and se < 0.15 * exact, (got, exact, se)

@@ -36,6 +36,8 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   // interface): a separator behind them is one the light tracer's photons
   // reach through a camera-side chain (LightTracer::camera_chain_max)
   bool chain_prefix = true;
+  // ... and, for the glints, every such vertex's BSDF a delta one (PathIntegrator::glint_path)
+  bool glint_prefix = true;
   const int lt_cam = lt_ ? lt_->camera_chain_max() : 0;
   const bool lt_area = lt_ && lt_->traces_area() && !lt_->glossy();
   // Glossy mode of the light tracer (no chain estimator): gl_n counts the
@@ -135,7 +137,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       const Color Le = scene.emitted(si);
       // (rate 0: this pixel's chain light is the path tracer's alone, below)
       LeafQuery leaf;  // (active_for's lookup, which pt_weight reuses)
-      if (glint_path(depth, chain_prefix, shape.emitter)) {
+      if (glint_path(depth, glint_prefix, shape.emitter)) {
         // camera -> chain vertices -> a small light: the glints bring this path
         if (!is_black(Le)) st.glint_pt_dropped++;
       } else if (gl && gl_n >= 1 && gl_n <= gl_max && lt_->traces_emitter(shape.emitter)) {
@@ -301,6 +303,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       delta_prefix = false;
     }
     chain_prefix = chain_prefix && chain_vertex && bs.delta && !bs.null;
+    glint_prefix = chain_prefix && glint_prefix && ctx.leaf->is_delta();
     // (a delta lobe of the camera's first hit, smooth plastic's coating: not
     // in the BSDF the photons' splat evaluates, so such paths stay here)
     if (gl && depth == 0 && bs.delta) gl_n = -1;
@@ -360,7 +363,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
 // reflection, a null interface) continues as in trace(). Recursion depth is at
 // most `levels` (<= 8: at most 2^8 leaves).
 Color PathIntegrator::delta_tree(const Scene& scene, SurfaceInteraction si, Vec3 d, Color beta, uint32_t depth,
-                                 float eta, int levels, PCG32& rng, Stats& st, bool chain_prefix) const {
+                                 float eta, int levels, PCG32& rng, Stats& st, bool glint_prefix) const {
   Color L(0.f);
   if (p_.max_depth == 0) return L;
   for (;;) {
@@ -382,7 +385,7 @@ Color PathIntegrator::delta_tree(const Scene& scene, SurfaceInteraction si, Vec3
       // (no separator on a delta prefix: never a chain path, as in trace;
       // the glints' paths are dropped, as there)
       const Color Le = scene.emitted(si);
-      if (glint_path(depth, chain_prefix, shape.emitter)) {
+      if (glint_path(depth, glint_prefix, shape.emitter)) {
         if (!is_black(Le)) st.glint_pt_dropped++;
       } else if (!is_black(Le)) {
         L += beta * Le;
@@ -394,8 +397,9 @@ Color PathIntegrator::delta_tree(const Scene& scene, SurfaceInteraction si, Vec3
     const Vec2 u2(rng.next_float(), rng.next_float());
     Vec3 wo;
     BSDFSample bs;
-    // (as trace's chain_prefix: a chain vertex, a delta lobe, not null)
-    const bool chain_vertex = chains_ && chains_->is_chain_bsdf(*ctx.leaf) && chains_->is_chain_shape(si.shape);
+    // (as trace's glint_prefix: a chain vertex with a delta BSDF, a delta lobe, not null)
+    const bool chain_vertex = chains_ && chains_->is_chain_bsdf(*ctx.leaf) && chains_->is_chain_shape(si.shape) &&
+                              ctx.leaf->is_delta();
     if (levels > 0 && ctx.leaf->is_delta()) {
       // u1 = 0 selects the first lobe (reflection: u1 <= F), u1 = 1 the second
       // (refraction, unless F = 1); distinct lobes: branch.
@@ -410,7 +414,7 @@ Color PathIntegrator::delta_tree(const Scene& scene, SurfaceInteraction si, Vec3
         const Vec3 org_t = offset_ray_origin(si.p, si.ng, wo_t);
         st.rays++;
         L += delta_tree(scene, scene.intersect(org_t, wo_t, 0.f, kInf), wo_t, beta * t.weight * t.pdf,
-                        depth + 1, eta * t.eta, levels - 1, rng, st, chain_prefix && chain_vertex && !t.null);
+                        depth + 1, eta * t.eta, levels - 1, rng, st, glint_prefix && chain_vertex && !t.null);
         bs = r;
         bs.weight = r.weight * r.pdf;
         wo = wo_r;
@@ -422,7 +426,7 @@ Color PathIntegrator::delta_tree(const Scene& scene, SurfaceInteraction si, Vec3
       bs = scene.bsdfs.sample(ctx, si.wi, rng.next_float(), u2, wo);
     }
     if (!(bs.pdf > 0.f) || is_black(bs.weight) || !bs.delta) break;  // Only: ends at a non-delta vertex
-    chain_prefix = chain_prefix && chain_vertex && !bs.null;
+    glint_prefix = glint_prefix && chain_vertex && !bs.null;
     beta *= bs.weight;
     eta *= bs.eta;
     ++depth;

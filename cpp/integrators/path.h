@@ -88,7 +88,9 @@ class PathIntegrator : public Integrator {
     if (chains_ && p_.glints > 0.f) gl_ = chains_->glint_lights(p_.glints, p_.max_depth);
   }
   const LightTracer* light_tracer() const override { return lt_.get(); }
-  bool glints_on() const override { return gl_.usable(); }
+  // (not in Exclude mode, which leaves out every path seen through delta
+  // scattering only, the glints' included: exclude + only = all)
+  bool glints_on() const override { return gl_.usable() && p_.camera_delta != PathParams::CameraDelta::Exclude; }
   const ChainEstimator::GlintLights& glint_lights() const { return gl_; }
   Color glint(const Vec3& o, const Vec3& d, const SurfaceInteraction& si, PCG32& rng, Stats& st) const override {
     return chains_->glint(gl_, o, d, si, st.film_x, st.film_y, rng, st);
@@ -167,16 +169,18 @@ class PathIntegrator : public Integrator {
   // trace in Only mode from the hit si of direction d, with branching at the
   // next `levels` two-lobe delta vertices (PathParams::delta_branch).
   Color delta_tree(const Scene& scene, SurfaceInteraction si, Vec3 d, Color beta, uint32_t depth, float eta,
-                   int levels, PCG32& rng, Stats& stats, bool chain_prefix = true) const;
+                   int levels, PCG32& rng, Stats& stats, bool glint_prefix = true) const;
   PathParams p_;
   std::shared_ptr<const ChainEstimator> chains_;
   std::shared_ptr<const LightTracer> lt_;   // (holds a reference to *chains_, none in glossy mode)
   std::string lt_off_;
   ChainEstimator::GlintLights gl_;   // (usable() false: no glints)
-  // Is a light hit after `depth` vertices, all chain vertices (delta,
-  // not null), the glints' path? (path.cpp drops it)
-  bool glint_path(uint32_t depth, bool chain_prefix, int emitter) const {
-    return gl_.usable() && chain_prefix && depth >= 1 && int(depth) <= gl_.mmax && gl_.owns(emitter);
+  // Is a light hit after `depth` vertices, all chain vertices with a delta
+  // BSDF (a smooth one: a rough one below the glossy threshold can sample a
+  // delta lobe when index-matched, and the glints' seeds stop there) and a
+  // delta, not null, lobe, the glints' path? (path.cpp drops it)
+  bool glint_path(uint32_t depth, bool glint_prefix, int emitter) const {
+    return glints_on() && glint_prefix && depth >= 1 && int(depth) <= gl_.mmax && gl_.owns(emitter);
   }
 };
 

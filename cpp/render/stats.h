@@ -207,6 +207,7 @@ struct Stats {
   // shape, walks run, estimates found in their pixel, Bernoulli trials,
   // non-finite estimates dropped, path-tracer light hits the glints bring
   uint64_t glint_seeds = 0, glint_walks = 0, glint_found = 0, glint_trials = 0, glint_rejected = 0;
+  uint64_t glint_capped = 0;         // Bernoulli counts stopped at max_trials (K then biased low)
   uint64_t glint_pt_dropped = 0;
   uint64_t lt_pt_dropped = 0;        // path-tracer contributions (light hits; glossy mode: NEE too) whose path the photons bring
   uint64_t guided_traces = 0;        // handoff_guided: traces drawn from a leaf in rate-0 pixels (and training's records)
@@ -248,6 +249,7 @@ struct Stats {
     lt_pt_dropped += o.lt_pt_dropped;
     glint_seeds += o.glint_seeds; glint_walks += o.glint_walks; glint_found += o.glint_found;
     glint_trials += o.glint_trials; glint_rejected += o.glint_rejected; glint_pt_dropped += o.glint_pt_dropped;
+    glint_capped += o.glint_capped;
     lt_photons += o.lt_photons; lt_rays += o.lt_rays; lt_splats += o.lt_splats; lt_rejected += o.lt_rejected;
     lt_chain_tries += o.lt_chain_tries; lt_chain_splats += o.lt_chain_splats;
     guided_traces += o.guided_traces;
@@ -288,6 +290,7 @@ struct Stats {
             {"glint_seeds", double(glint_seeds)}, {"glint_walks", double(glint_walks)},
             {"glint_found", double(glint_found)}, {"glint_trials", double(glint_trials)},
             {"glint_rejected", double(glint_rejected)}, {"glint_pt_dropped", double(glint_pt_dropped)},
+            {"glint_capped", double(glint_capped)},
             {"lt_photons", double(lt_photons)}, {"lt_rays", double(lt_rays)},
             {"lt_splats", double(lt_splats)}, {"lt_rejected", double(lt_rejected)},
             {"lt_chain_tries", double(lt_chain_tries)}, {"lt_chain_splats", double(lt_chain_splats)},
