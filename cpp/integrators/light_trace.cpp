@@ -115,19 +115,8 @@ bool LightTracer::init_common(const std::vector<char>& casters) {
   }
   // Bounding sphere of the chain shapes: photons are aimed into its cone.
   Vec3 lo(kInf), hi(-kInf);
-  for (size_t s = 0; s < scene.shapes.size(); ++s) {
-    if (!casters[s]) continue;
-    const Shape& sh = scene.shapes[s];
-    if (sh.kind == Shape::Kind::Sphere) {
-      lo = glm::min(lo, sh.center - Vec3(sh.radius));
-      hi = glm::max(hi, sh.center + Vec3(sh.radius));
-    } else {
-      for (const Vec3& p : sh.positions) {
-        lo = glm::min(lo, p);
-        hi = glm::max(hi, p);
-      }
-    }
-  }
+  for (size_t s = 0; s < scene.shapes.size(); ++s)
+    if (casters[s]) scene.shapes[s].grow_bounds(lo, hi);
   if (!(lo.x <= hi.x)) {
     why_ = glossy_ ? "no shape is a caster (smooth, or rough below the glossy threshold)" : "no chain shape";
     return false;

@@ -1083,19 +1083,8 @@ ChainEstimator::GlintLights ChainEstimator::glint_lights(float max_pixels, int m
   const int mmax = max_depth < 0 ? p_.max_chain : std::min(p_.max_chain, max_depth - 1);
   if (mmax < 1) return gl;
   Vec3 lo(kInf), hi(-kInf);
-  for (size_t s = 0; s < scene_.shapes.size(); ++s) {
-    if (!specular_shape_[s]) continue;
-    const Shape& sh = scene_.shapes[s];
-    if (sh.kind == Shape::Kind::Sphere) {
-      lo = glm::min(lo, sh.center - Vec3(sh.radius));
-      hi = glm::max(hi, sh.center + Vec3(sh.radius));
-    } else {
-      for (const Vec3& q : sh.positions) {
-        lo = glm::min(lo, q);
-        hi = glm::max(hi, q);
-      }
-    }
-  }
+  for (size_t s = 0; s < scene_.shapes.size(); ++s)
+    if (specular_shape_[s]) scene_.shapes[s].grow_bounds(lo, hi);
   if (!(lo.x <= hi.x)) return gl;
   const DVec3 chain_c = 0.5 * (to_d(lo) + to_d(hi));
   gl.cam_o = to_d(Vec3(cam.to_world * Vec4(0.f, 0.f, 0.f, 1.f)));
@@ -1119,10 +1108,7 @@ ChainEstimator::GlintLights ChainEstimator::glint_lights(float max_pixels, int m
       r = double(sh.radius);
     } else {
       Vec3 a(kInf), b(-kInf);
-      for (const Vec3& q : sh.positions) {
-        a = glm::min(a, q);
-        b = glm::max(b, q);
-      }
+      sh.grow_bounds(a, b);
       if (!(a.x <= b.x)) continue;
       c = 0.5 * (to_d(a) + to_d(b));
       for (const Vec3& q : sh.positions) r = std::max(r, glm::length(to_d(q) - c));

@@ -26,6 +26,19 @@ struct Shape {
   float area = 0.f;
   DiscreteDistribution tri_dist;  // by triangle area
 
+  // Grow the box [lo, hi] by the shape's bounds.
+  void grow_bounds(Vec3& lo, Vec3& hi) const {
+    if (kind == Kind::Sphere) {
+      lo = glm::min(lo, center - Vec3(radius));
+      hi = glm::max(hi, center + Vec3(radius));
+      return;
+    }
+    for (const Vec3& q : positions) {
+      lo = glm::min(lo, q);
+      hi = glm::max(hi, q);
+    }
+  }
+
   void finalize() {
     if (kind == Kind::Sphere) {
       area = 4.f * kPi * radius * radius;
