@@ -38,13 +38,13 @@ GLASS_BSDF = '<bsdf type="dielectric"><float name="int_ior" value="1.5"/></bsdf>
 
 
 def mirror_light_scene(radius=MIRROR_R, res=RES, rfilter='<rfilter type="box"/>', max_depth=4, fov=FOV, aim_z=0.0,
-                       bsdf=MIRROR_BSDF):
+                       bsdf=MIRROR_BSDF, light_target="0, 0, 0"):
     return f"""<scene version="3.0.0"><integrator type="path"><integer name="max_depth" value="{max_depth}"/></integrator>
       {_cam("-1, 2, 0", f"0, 0, {aim_z:g}", res, rfilter, fov)}
       <shape type="rectangle"><transform name="to_world"><scale value="3"/><rotate x="1" angle="-90"/></transform>
         {bsdf}</shape>
       <shape type="disk"><transform name="to_world"><scale value="{radius:g}"/>
-        <lookat origin="1, 2, 0" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <lookat origin="1, 2, 0" target="{light_target}" up="0, 1, 0"/></transform>
         <bsdf type="diffuse"><rgb name="reflectance" value="0"/></bsdf>
         <emitter type="area"><rgb name="radiance" value="{MIRROR_LE:g}"/></emitter></shape>
     </scene>"""
@@ -274,3 +274,13 @@ def test_the_delta_splits_branched_paths_leave_the_glints_to_the_walks():
     cos_img = np.dot(M - C, T - C) / np.linalg.norm(M - C) / np.linalg.norm(T - C)
     got, se = _solid_angle_sum(split, cos_img, fov=fov)
     assert abs(got - exact) < 5 * se + 1e-3 * exact and se < 0.15 * exact, (got, exact, se)
+
+
+def test_a_light_seen_from_behind_in_the_mirror_has_no_glint():
+    """A one-sided disk light facing away from the mirror: the camera sees its
+    back in the mirror, which emits nothing, with glints as without."""
+    sc = mpg.load_string(mirror_light_scene(light_target="2, 4, 0"))
+    img = mpg.render(sc, integrator={"type": "sms_star", "camera_delta": "only", "glints": 100.0}, spp=64, seed=1,
+                     progress=False)
+    assert img.stats["glint_walks"] > 0            # the walks reach the light ...
+    assert img.stats["glint_found"] == 0 and img.rgb.max() == 0.0   # ... from behind: nothing
