@@ -312,13 +312,12 @@ bool LightTracer::project(const Vec3& p, uint32_t& pixel, float& cos_c, float& t
   const Camera& cam = scene_.camera;
   // film position (generate_ray inverted): local x left, y up, z forward
   const Vec4 q = to_local_ * Vec4(p, 1.f);
-  if (!(q.z > 0.f)) return false;
+  Vec2 film;
+  if (!cam.film_position(q, film)) return false;
   // the camera ray's clip distances are along the optical axis, in the
   // camera's local units (Camera::generate_ray)
   if (q.z < cam.near_clip || q.z > cam.far_clip) return false;
-  const float X = q.x / q.z, Y = q.y / q.z;
-  const float fx = 0.5f * (1.f - X / cam.tan_half_x) * float(cam.width);
-  const float fy = 0.5f * (1.f - Y / cam.tan_half_y) * float(cam.height);
+  const float fx = film.x, fy = film.y;
   if (!(fx >= 0.f && fy >= 0.f)) return false;
   const int px = int(std::floor(fx)) - cam.crop_x, py = int(std::floor(fy)) - cam.crop_y;
   if (px < 0 || py < 0 || px >= cam.crop_w || py >= cam.crop_h) return false;

@@ -1087,7 +1087,7 @@ ChainEstimator::GlintLights ChainEstimator::glint_lights(float max_pixels, int m
     if (specular_shape_[s]) scene_.shapes[s].grow_bounds(lo, hi);
   if (!(lo.x <= hi.x)) return gl;
   const DVec3 chain_c = 0.5 * (to_d(lo) + to_d(hi));
-  gl.cam_o = to_d(Vec3(cam.to_world * Vec4(0.f, 0.f, 0.f, 1.f)));
+  const DVec3 cam_o = to_d(Vec3(cam.to_world * Vec4(0.f, 0.f, 0.f, 1.f)));
   gl.cam_fwd = glm::normalize(to_d(Vec3(cam.to_world * Vec4(0.f, 0.f, 1.f, 0.f))));
   gl.to_local = glm::inverse(cam.to_world);
   const double px = 2.0 * double(cam.tan_half_x) / cam.width, py = 2.0 * double(cam.tan_half_y) / cam.height;
@@ -1113,7 +1113,7 @@ ChainEstimator::GlintLights ChainEstimator::glint_lights(float max_pixels, int m
       c = 0.5 * (to_d(a) + to_d(b));
       for (const Vec3& q : sh.positions) r = std::max(r, glm::length(to_d(q) - c));
     }
-    const double len = glm::length(chain_c - gl.cam_o) + glm::length(c - chain_c);
+    const double len = glm::length(chain_c - cam_o) + glm::length(c - chain_c);
     if (!(len > 0.0) || !(2.0 * r / len < double(max_pixels) * pix)) continue;
     gl.owned[size_t(e)] = 1;
     gl.emitters.push_back(e);
@@ -1201,11 +1201,9 @@ Color ChainEstimator::glint(const GlintLights& gl, const Vec3& o, const Vec3& d,
     }
     // where the camera sees the solution: this sample's pixel, or another's
     const DVec3 w_star = glm::normalize(chain.v[0].p - chain.xD);
-    const Vec4 q = gl.to_local * Vec4(to_f(chain.v[0].p), 1.f);
-    if (!(q.z > 0.f)) continue;
-    const double fxs = 0.5 * (1.0 - double(q.x / q.z) / cam.tan_half_x) * cam.width;
-    const double fys = 0.5 * (1.0 - double(q.y / q.z) / cam.tan_half_y) * cam.height;
-    if (!(std::floor(fxs) == double(fx) && std::floor(fys) == double(fy))) continue;
+    Vec2 film;
+    if (!cam.film_position(gl.to_local * Vec4(to_f(chain.v[0].p), 1.f), film)) continue;
+    if (!(std::floor(film.x) == float(fx) && std::floor(film.y) == float(fy))) continue;
     const double cos_c = glm::dot(w_star, gl.cam_fwd);
     if (!(cos_c > 0.0)) continue;
     const ManifoldVertex& last = chain.v.back();

@@ -224,7 +224,7 @@ class ChainEstimator {
     std::vector<double> capture;  // ... and the seed's capture radius around it
     DiscreteDistribution dist;    // by power
     Mat4 to_local{1.f};
-    DVec3 cam_o{0.0}, cam_fwd{0.0, 0.0, 1.0};
+    DVec3 cam_fwd{0.0, 0.0, 1.0};
     double a_pix = 0.0;
     bool usable() const { return mmax > 0 && !emitters.empty(); }
     bool owns(int e) const { return e >= 0 && size_t(e) < owned.size() && owned[size_t(e)] != 0; }

@@ -42,6 +42,15 @@ struct Camera {
     tmin = near_clip / dl.z * len;
     tmax = far_clip / dl.z * len;
   }
+  // generate_ray inverted: the film position (pixels of the full film) of a
+  // point q in the camera's local frame (inverse of to_world applied); false
+  // behind the pinhole.
+  bool film_position(const Vec4& q, Vec2& film) const {
+    if (!(q.z > 0.f)) return false;
+    const float X = q.x / q.z, Y = q.y / q.z;
+    film = Vec2(0.5f * (1.f - X / tan_half_x) * float(width), 0.5f * (1.f - Y / tan_half_y) * float(height));
+    return true;
+  }
 };
 
 }  // namespace mpg
