@@ -773,3 +773,24 @@ def test_photon_variance_model_matches_independent_passes(scenes_dir):
     _, info = learn_photon_rate(1.0, 1.0, s1, s2, n, 1.0, 0.25)
     predicted = info["light_trace_model_v_photon"] * (24 * 24) / (4 * 24 * 24)
     assert spread > 0 and abs(spread / predicted - 1.0) < 0.15, (spread, predicted)
+
+
+def test_the_photon_pilot_keeps_the_split_paths_off_the_renders_sequence(scenes_dir, monkeypatch):
+    """The photon pilot runs mpg with the render's seed and maps; with the
+    delta split's extra paths on their per-pixel Sobol sequence
+    (delta_split_sobol, mpg's default) it would trace the render's own first
+    points. Its integrator has the sequence off; the render's has it on."""
+    from mpg import _core
+    made = []
+    real = _core.make_integrator
+
+    def spy(scene, kind, params):
+        made.append((kind, dict(params)))
+        return real(scene, kind, params)
+    monkeypatch.setattr(_core, "make_integrator", spy)
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
+    img = mpg.render(sc, integrator="mpg", spp=256, seed=4, progress=False)
+    assert "light_trace_learned" in img.stats   # (the pilot ran)
+    final = [p for k, p in made if k == "mpg" and not p.get("record")]
+    assert len(final) == 2   # the pilot, then the render
+    assert final[0]["delta_split_sobol"] is False and final[1]["delta_split_sobol"] is True

@@ -261,6 +261,7 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
   pp.delta_branch = get<int>(p, "delta_branch", 0);
   if (pp.delta_branch < 0 || pp.delta_branch > 8)
     throw std::invalid_argument("delta_branch must be in [0, 8], got " + std::to_string(pp.delta_branch));
+  pp.delta_split_sobol = get<bool>(p, "delta_split_sobol", false);
   // photons per camera sample (chain integrators; mpg light traces by default)
   pp.light_trace = get<float>(p, "light_trace", type == "mpg" ? kMpgLightTrace : 0.f);
   pp.light_trace_through = get<bool>(p, "light_trace_through", type == "mpg" ? kMpgLightTraceThrough : false);

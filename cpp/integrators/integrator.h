@@ -42,6 +42,9 @@ class Integrator {
   // than the delta part of a sample's own camera path (render.cpp then leaves
   // that part out of a split pixel's mean).
   virtual bool delta_branched() const { return false; }
+  // The delta split's extra paths take their film positions from a per-pixel
+  // Sobol sequence (PathParams::delta_split_sobol), not independent ones.
+  virtual bool delta_split_sobol() const { return false; }
   // The light tracer of the caustics the camera sees (point and spot lights,
   // area lights on request; integrators/light_trace.h), or null: each render
   // pass then also traces its photons.

@@ -32,6 +32,9 @@ struct PathParams {
   // (a dielectric's reflection and refraction): both are followed, each with
   // its discrete weight times its probability, instead of one drawn (0: off).
   int delta_branch = 0;
+  // The delta split's extra camera paths at the points of a per-pixel
+  // randomly shifted Sobol sequence (render.cpp), not independent positions.
+  bool delta_split_sobol = false;
   int hard_depth_cap = 1024;  // safety net against unbounded loops (counted)
   // Photons per camera sample of the light tracer (integrators/light_trace.h;
   // chain integrators only; 0: off): with a point or spot chain light, the
@@ -115,6 +118,7 @@ class PathIntegrator : public Integrator {
     return trace(scene, o, d, scene.intersect(o, d, tmin, tmax), rng, stats, PathParams::CameraDelta::Only);
   }
   bool delta_branched() const override { return p_.delta_branch > 0; }
+  bool delta_split_sobol() const override { return p_.delta_split_sobol; }
 
  private:
   Color trace(const Scene& scene, const Vec3& o, const Vec3& d, SurfaceInteraction si, PCG32& rng,

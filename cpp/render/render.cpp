@@ -102,6 +102,9 @@ void RenderJob::run() {
   if (kmap && kmap->size() != size_t(W) * H) kmap = nullptr;
   const std::vector<float>* smap = cfg_.pixel_split_map.get();
   const bool branched = integrator_->delta_branched();  // (Li_delta's kind, once per pass)
+  const bool split_sobol = integrator_->delta_split_sobol();
+  // the split's own sequence per pixel (its shift apart from the positions')
+  const uint64_t split_key = mix64(cfg_.seed ^ 0x2545f4914f6cdd1dULL);
   if (smap && smap->size() != size_t(W) * H) smap = nullptr;
   int nthreads = cfg_.threads > 0 ? cfg_.threads : int(std::thread::hardware_concurrency());
   nthreads = std::max(1, std::min(nthreads, tiles_total_));
@@ -118,10 +121,12 @@ void RenderJob::run() {
     // With cfg_.stratify and an index >= 0 the position is point `index` of the
     // pixel's Sobol sequence shifted by `shift` (the pixel's two 32-bit words).
     const uint64_t shift_key = mix64(cfg_.seed ^ 0x5851f42d4c957f2dULL);
+    // (sobol: the sequence's point even in an unstratified pass: the delta
+    // split's extra paths, Integrator::delta_split_sobol)
     auto camera_ray = [&](PCG32& rng, int fx, int fy, Vec3& o, Vec3& d, float& tmin, float& tmax,
-                          int64_t index = -1, uint64_t shift = 0) {
+                          int64_t index = -1, uint64_t shift = 0, bool sobol = false) {
       float u0, u1;
-      if (cfg_.stratify && index >= 0) {
+      if ((cfg_.stratify || sobol) && index >= 0) {
         shifted_sobol_2d(uint32_t(uint64_t(index)), uint32_t(shift), uint32_t(shift >> 32), u0, u1);
       } else {
         u0 = rng.next_float();
@@ -214,7 +219,21 @@ void RenderJob::run() {
                 for (int j = 1; j < ksplit; ++j) {
                   Vec3 o2, d2;
                   float tmin2, tmax2;
-                  camera_ray(rng, fx, fy, o2, d2, tmin2, tmax2);
+                  // With delta_split_sobol the extra paths' film positions are
+                  // the points of one randomly shifted Sobol (0,2)-sequence per
+                  // pixel, continued over the samples and passes (point
+                  // ((offset + k) kpix + sub)(ksplit - 1) + j - 1): each is uniform
+                  // in the pixel, so each extra path stays unbiased, and a
+                  // branched path's value is nearly a function of its position
+                  // alone, which the net then stratifies (the thin bright
+                  // slivers of the light seen in the glass). Else independent.
+                  if (split_sobol)
+                    camera_ray(rng, fx, fy, o2, d2, tmin2, tmax2,
+                               int64_t(((cfg_.sample_offset + uint64_t(k)) * uint64_t(kpix) + uint64_t(sub)) *
+                                           uint64_t(ksplit - 1) + uint64_t(j - 1)),
+                               mix64(split_key ^ pixel), true);
+                  else
+                    camera_ray(rng, fx, fy, o2, d2, tmin2, tmax2);
                   st.delta_split_paths++;
                   D += integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st);
                 }

@@ -41,6 +41,11 @@ def _split_setting(name: str, value, words: tuple[str, ...]):
 # lower on slab, 1.53x pool, 1.39x double_slabs, 1.08x sphere, ring the same
 # (bench/results/compare-branch-suite; 3 levels did half as well on double_slabs).
 DELTA_BRANCH = 8
+# mpg's default delta_split_sobol: the split's extra paths at the points of a
+# per-pixel Sobol sequence; against independent positions (20 s, 2 seeds)
+# own MSE 1.43x lower on double_slabs, 1.11x slab, the rest level
+# (docs/results.md, twenty-fifth session)
+DELTA_SPLIT_SOBOL = True
 
 # The photon rate the learned one is compared with in the stats'
 # light_trace_model_gain: the core's default for mpg in chain mode
@@ -200,7 +205,9 @@ def _learn_photon_rate(core, scene, params: dict, keys: list[str], guide, seed: 
     cam = scene.desc.camera
     npix = int(cam.crop[2]) * int(cam.crop[3])
     pilot_rate = min(64.0, max(1.0, PHOTON_PILOT / npix))   # (64: the core's most per sample)
-    integ = _core.make_integrator(core, "mpg", dict(params, guide=guide, record=False,
+    # (delta_split_sobol off: the same seed would put the pilot's extra paths
+    # on the render's own first points of each pixel's sequence)
+    integ = _core.make_integrator(core, "mpg", dict(params, guide=guide, record=False, delta_split_sobol=False,
                                                     **{key: pilot_rate for key in keys}))
     # (the rate of the tracer's mode: a number given for it is used as is)
     key = "light_trace_glossy" if integ.light_trace_glossy_on else "light_trace"
@@ -291,6 +298,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # two-lobe delta vertices (design-notes "Branching the paths of the light
     # seen in the glass"); mpg's default, the baselines (path, sms*) keep 0
     params.setdefault("delta_branch", DELTA_BRANCH)
+    params.setdefault("delta_split_sobol", DELTA_SPLIT_SOBOL)
     params.setdefault("max_chain", MAX_CHAIN)
     # pixel_split: "mse" (PIXEL_SPLIT, the default) or "relmse" (learned with the
     # rates for that error: each sample of a pixel the mean of k camera samples),

@@ -24,7 +24,7 @@ IMPLEMENTED = {"path", "sms", "sms_star", "mpg"}
 CLASS_NAMES = ("chain", "shared", "traced", "handed", "unseen", "inactive", "unowned", "delta", "other",
                "glints", "photons")
 
-PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters", "camera_delta", "delta_branch"}
+PATH_PARAMS = {"max_depth", "rr_depth", "hide_emitters", "camera_delta", "delta_branch", "delta_split_sobol"}
 CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max_trials",
                 "threshold", "max_iterations", "min_step", "step_halvings", "form", "glossy_threshold",
                 "mis", "mis_rate", "chain_rate", "light_trace", "light_trace_through",
@@ -37,7 +37,7 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "delta_split", "pixel_split", "pixel_split_max_cost", "limit_in_training", "known_types",
                 "handoff_guided", "learn_trace", "trace_tails", "joint_maps",
                 "trace_min_hits", "joint_min_samples"}
-BOOL_PARAMS = {"hide_emitters", "light_trace_through", "light_trace_area", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
+BOOL_PARAMS = {"hide_emitters", "delta_split_sobol", "light_trace_through", "light_trace_area", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "mis_rate", "chain_handoff", "limit_in_training", "known_types",
                "learn_trace", "trace_tails", "joint_maps"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
