@@ -248,32 +248,19 @@ def test_branched_paths_stay_unbiased_and_cut_the_glints_variance(sphere, sphere
     assert image_zmax(dbr, dref, REGIONS) < 5 and _lit_z(dbr, dref, dlit) < 5
 
 
-# A camera looking straight down at an emitting half-plane whose edge crosses
-# the 8 x 8 image at 20 degrees (tests/test_sampler.py's EDGE): the light seen
+# tests/test_sampler.py's EDGE: a camera looking straight down at an emitting
+# half-plane whose edge crosses the image at 20 degrees. The light seen
 # through delta scattering only (here directly) is the covered fraction of a
 # pixel's footprint, decided by the film position alone.
-EDGE = """<scene version="3.0.0">
-  <integrator type="path"/>
-  <sensor type="perspective">
-    <float name="fov" value="30"/>
-    <transform name="to_world"><lookat origin="0, 4, 0" target="0, 0, 0" up="0, 0, -1"/></transform>
-    <sampler type="independent"><integer name="sample_count" value="16"/></sampler>
-    <film type="hdrfilm"><integer name="width" value="{res}"/><integer name="height" value="{res}"/>
-      <rfilter type="box"/></film>
-  </sensor>
-  <shape type="rectangle">
-    <transform name="to_world">
-      <scale value="10"/><rotate x="1" angle="-90"/><translate x="10"/><rotate y="1" angle="20"/>
-    </transform>
-    <emitter type="area"><rgb name="radiance" value="1"/></emitter>
-  </shape>
-</scene>"""
+def _edge_scene(res: int):
+    from test_sampler import EDGE
+    return mpg.load_string(EDGE.format(sampler="independent").replace('value="8"/>', f'value="{res}"/>'))
 
 
 def _edge_renders(sobol: bool, spp: int, seeds: range) -> np.ndarray:
     """The split's extra path alone per sample (delta_branch 1: a split sample
     leaves its own delta part out; no vertex here has two lobes)."""
-    sc = mpg.load_string(EDGE.format(res=8))
+    sc = _edge_scene(8)
     two = np.full((8, 8), 2, np.float32)
     integ = {"type": "path", "delta_branch": 1, "delta_split_sobol": sobol}
     return np.stack([mpg.render(sc, integ, spp=spp, seed=s, progress=False, delta_split_map=two).rgb[..., 0]
@@ -310,7 +297,7 @@ def test_sobol_extra_paths_continue_one_sequence_over_passes_and_pixel_splits():
     (8 spp of 2 camera samples each are the same 16 points as 16 spp), since
     each value here is decided by its position alone. Two threads give the
     image of one."""
-    sc = mpg.load_string(EDGE.format(res=48))   # 9 tiles: the threads share the image
+    sc = _edge_scene(48)   # 9 tiles: the threads share the image
     two = np.full((48, 48), 2, np.float32)
     p = {"type": "path", "delta_branch": 1, "delta_split_sobol": True}
     a = mpg.render(sc, p, spp=9, seed=3, threads=1, progress=False, delta_split_map=two)
