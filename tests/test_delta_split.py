@@ -270,8 +270,8 @@ def _edge_renders(sobol: bool, spp: int, seeds: range) -> np.ndarray:
 def test_sobol_extra_paths_stay_unbiased_and_stratify_an_edge():
     """delta_split_sobol: the split's extra paths at the points of a per-pixel
     randomly shifted Sobol sequence. 96 seeds of each: per pixel the mean over
-    seeds agrees with independent positions' within |z| < 4.5 (64 pixels,
-    p < 5e-4 for the image) at 12 spp (the passes 1, 1, 2, 4, 4 end
+    seeds agrees with independent positions' within |z| < 4.5 in every pixel
+    the edge crosses (at most 64, p < 5e-4 for them) at 12 spp (the passes 1, 1, 2, 4, 4 end
     mid-block); at 16 spp the summed variance over seeds of the edge pixels is
     below half the independent positions' (expected near 16^-1/2, ~0.25; the
     96-seed ratio has a relative error near 0.2). Off is the plain split bit

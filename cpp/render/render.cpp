@@ -103,8 +103,6 @@ void RenderJob::run() {
   const std::vector<float>* smap = cfg_.pixel_split_map.get();
   const bool branched = integrator_->delta_branched();  // (Li_delta's kind, once per pass)
   const bool split_sobol = integrator_->delta_split_sobol();
-  // the split's own sequence per pixel (its shift apart from the positions')
-  const uint64_t split_key = mix64(cfg_.seed ^ 0x2545f4914f6cdd1dULL);
   if (smap && smap->size() != size_t(W) * H) smap = nullptr;
   int nthreads = cfg_.threads > 0 ? cfg_.threads : int(std::thread::hardware_concurrency());
   nthreads = std::max(1, std::min(nthreads, tiles_total_));
@@ -121,6 +119,8 @@ void RenderJob::run() {
     // With cfg_.stratify and an index >= 0 the position is point `index` of the
     // pixel's Sobol sequence shifted by `shift` (the pixel's two 32-bit words).
     const uint64_t shift_key = mix64(cfg_.seed ^ 0x5851f42d4c957f2dULL);
+    // the delta split's own sequence per pixel (its shift apart from the positions')
+    const uint64_t split_key = mix64(cfg_.seed ^ 0x2545f4914f6cdd1dULL);
     // (sobol: the sequence's point even in an unstratified pass: the delta
     // split's extra paths, Integrator::delta_split_sobol)
     auto camera_ray = [&](PCG32& rng, int fx, int fy, Vec3& o, Vec3& d, float& tmin, float& tmax,
@@ -148,6 +148,7 @@ void RenderJob::run() {
           const int fx = cam.crop_x + x, fy = cam.crop_y + y;
           const uint64_t pixel = uint64_t(fy) * uint64_t(cam.width) + uint64_t(fx);
           const uint64_t shift = mix64(shift_key ^ pixel);  // from the seed and pixel only
+          const uint64_t split_shift = split_sobol ? mix64(split_key ^ pixel) : 0;
           double s[3] = {0, 0, 0}, s2[3] = {0, 0, 0}, a[3] = {0, 0, 0}, a2[3] = {0, 0, 0}, hits = 0;
           double ds[3] = {0, 0, 0}, ds2[3] = {0, 0, 0};
           double cs[NC] = {}, cs2[NC] = {};   // (record_classes)
@@ -231,7 +232,7 @@ void RenderJob::run() {
                     camera_ray(rng, fx, fy, o2, d2, tmin2, tmax2,
                                int64_t(((cfg_.sample_offset + uint64_t(k)) * uint64_t(kpix) + uint64_t(sub)) *
                                            uint64_t(ksplit - 1) + uint64_t(j - 1)),
-                               mix64(split_key ^ pixel), true);
+                               split_shift, true);
                   else
                     camera_ray(rng, fx, fy, o2, d2, tmin2, tmax2);
                   st.delta_split_paths++;
