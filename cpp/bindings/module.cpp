@@ -178,6 +178,10 @@ py::dict pass_to_dict(PassResult& r) {
     put("trace_rays", r.trace_rays, grey);
     put("delta_sum", r.delta_sum, rgb);
     put("delta_sum_sq", r.delta_sum_sq, rgb);
+    put("bdelta_n", r.bdelta_n, grey);
+    put("bdelta_rays", r.bdelta_rays, grey);
+    put("bdelta_within", r.bdelta_within, grey);
+    put("udelta_within", r.udelta_within, grey);
   }
   out["lt_photons"] = r.lt_photons;
   out["lt_work_rays"] = r.lt_work_rays;
@@ -733,12 +737,13 @@ PYBIND11_MODULE(_core, m) {
                        uint64_t pass, int threads, py::object chain_rate_map, bool record_costs,
                        py::object delta_split_map, py::object pixel_split_map, bool stratify,
                        uint64_t sample_offset, py::object guided_trace_map, bool record_classes,
-                       bool light_trace) {
+                       bool light_trace, py::object delta_branch_map, bool record_branch) {
         if (!scene->committed()) throw std::runtime_error("scene not committed");
         if (spp < 1) throw std::invalid_argument("spp must be >= 1");
         PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
         cfg.record_costs = record_costs;
         cfg.record_classes = record_classes;
+        cfg.record_branch = record_branch;
         cfg.light_trace = light_trace;
         cfg.stratify = stratify;
         cfg.sample_offset = sample_offset;
@@ -764,6 +769,12 @@ PYBIND11_MODULE(_core, m) {
             throw std::invalid_argument("delta_split_map needs the integrator's camera_delta = all");
           cfg.delta_split_map = std::move(m);
         }
+        if (!delta_branch_map.is_none()) {
+          auto m = pixel_map(delta_branch_map, scene->camera, "delta_branch_map");
+          for (float v : *m)
+            if (!(v == 0.f || v == 1.f)) throw std::invalid_argument("delta_branch_map values must be 0 or 1");
+          cfg.delta_branch_map = std::move(m);
+        }
         if (!pixel_split_map.is_none()) {
           auto m = count_map(pixel_split_map, scene->camera, "pixel_split_map");
           if (record_costs)   // the per-sample records would see the last camera sample only
@@ -784,7 +795,8 @@ PYBIND11_MODULE(_core, m) {
          py::arg("threads") = 0, py::arg("chain_rate_map") = py::none(), py::arg("record_costs") = false,
          py::arg("delta_split_map") = py::none(), py::arg("pixel_split_map") = py::none(),
          py::arg("stratify") = false, py::arg("sample_offset") = 0, py::arg("guided_trace_map") = py::none(),
-         py::arg("record_classes") = false, py::arg("light_trace") = true)
+         py::arg("record_classes") = false, py::arg("light_trace") = true, py::arg("delta_branch_map") = py::none(),
+         py::arg("record_branch") = true)
       .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
       .def("cancel", &RenderJob::cancel)
       .def_property_readonly("progress", &RenderJob::progress)

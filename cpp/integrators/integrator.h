@@ -35,7 +35,10 @@ class Integrator {
   }
   // Only the light reaching the camera through delta scattering (the extra
   // paths of Stats::split_delta); integrators that do not split return 0.
-  virtual Color Li_delta(const Scene&, const Vec3&, const Vec3&, float, float, PCG32&, Stats&) const {
+  // branch: a branched estimate where the integrator branches (delta_branched);
+  // false: the plain Only path (the pixel's learned choice, render.cpp).
+  virtual Color Li_delta(const Scene&, const Vec3&, const Vec3&, float, float, PCG32&, Stats&,
+                         bool /*branch*/) const {
     return Color(0.f);
   }
   // Li_delta is a branched estimate (PathParams::delta_branch), far less noisy

@@ -110,9 +110,9 @@ class PathIntegrator : public Integrator {
     return trace(scene, o, d, std::move(si), rng, stats, p_.camera_delta);
   }
   Color Li_delta(const Scene& scene, const Vec3& o, const Vec3& d, float tmin, float tmax, PCG32& rng,
-                 Stats& stats) const override {
+                 Stats& stats, bool branch) const override {
     stats.rays++;
-    if (p_.delta_branch > 0)
+    if (branch && p_.delta_branch > 0)
       return delta_tree(scene, scene.intersect(o, d, tmin, tmax), d, Color(1.f), 0, 1.f, p_.delta_branch, rng,
                         stats);
     return trace(scene, o, d, scene.intersect(o, d, tmin, tmax), rng, stats, PathParams::CameraDelta::Only);

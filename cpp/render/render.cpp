@@ -93,6 +93,10 @@ void RenderJob::run() {
     result_.delta_rays.assign(size_t(W) * H, 0.0);
     result_.delta_sum.assign(size_t(W) * H * 3, 0.0);
     result_.delta_sum_sq.assign(size_t(W) * H * 3, 0.0);
+    result_.bdelta_n.assign(size_t(W) * H, 0.0);
+    result_.bdelta_rays.assign(size_t(W) * H, 0.0);
+    result_.bdelta_within.assign(size_t(W) * H, 0.0);
+    result_.udelta_within.assign(size_t(W) * H, 0.0);
   }
   const std::vector<float>* qmap = cfg_.chain_rate_map.get();
   if (qmap && qmap->size() != size_t(W) * H) qmap = nullptr;  // checked by the bindings
@@ -102,6 +106,8 @@ void RenderJob::run() {
   if (kmap && kmap->size() != size_t(W) * H) kmap = nullptr;
   const std::vector<float>* smap = cfg_.pixel_split_map.get();
   const bool branched = integrator_->delta_branched();  // (Li_delta's kind, once per pass)
+  const std::vector<float>* bmap = cfg_.delta_branch_map.get();
+  if (bmap && bmap->size() != size_t(W) * H) bmap = nullptr;
   const bool split_sobol = integrator_->delta_split_sobol();
   if (smap && smap->size() != size_t(W) * H) smap = nullptr;
   int nthreads = cfg_.threads > 0 ? cfg_.threads : int(std::thread::hardware_concurrency());
@@ -163,6 +169,9 @@ void RenderJob::run() {
           st.pixel_chain_m2 = 0.0;
           const int ksplit = kmap ? std::max(1, int((*kmap)[size_t(y) * W + x])) : 1;
           st.split_delta = ksplit > 1;
+          // the split's extra paths branched here (the integrator's kind, unless the map says no)
+          const bool pbranch = branched && !(bmap && !((*bmap)[size_t(y) * W + x] > 0.f));
+          double bn = 0, brays = 0, brays_more = 0, bw = 0, uw = 0;   // (record_costs, branched: PassResult::bdelta_*)
           const int kpix = smap ? std::max(1, int((*smap)[size_t(y) * W + x])) : 1;
           const uint64_t steps0 = st.chain_steps, walk0 = st.walk_steps, rays0 = st.rays + st.shadow_rays + st.camera_rays;
           const uint64_t delta0 = st.delta_prefix_rays, trace0 = st.trace_rays;
@@ -174,6 +183,7 @@ void RenderJob::run() {
             // estimates took seconds).
             if (cancel_.load(std::memory_order_relaxed)) return;
             PCG32 rng = make_stream(cfg_.seed, cfg_.pass, pixel, uint64_t(k));
+            const uint64_t delta_k0 = st.delta_prefix_rays;   // (the branch records: did this sample see glass?)
             // the guided trace's record in one sample of kTraceRecordEvery (its
             // traces, and the path tracer's weights against them, cost about
             // as much as the sample: in every sample they took a training
@@ -216,7 +226,7 @@ void RenderJob::run() {
                 // random stream).
                 // Branched extra paths (delta_branched) are far less noisy than
                 // this path's own delta part: the mean of the k - 1 of them alone.
-                Color D = branched ? Color(0.f) : st.sample_delta_L;
+                Color D = pbranch ? Color(0.f) : st.sample_delta_L;
                 for (int j = 1; j < ksplit; ++j) {
                   Vec3 o2, d2;
                   float tmin2, tmax2;
@@ -236,10 +246,10 @@ void RenderJob::run() {
                   else
                     camera_ray(rng, fx, fy, o2, d2, tmin2, tmax2);
                   st.delta_split_paths++;
-                  D += integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st);
+                  D += integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st, pbranch);
                 }
-                Ls += D * (1.f / float(branched ? ksplit - 1 : ksplit));
-                if (classes) cls[Stats::kClassDelta] += D * (1.f / float(branched ? ksplit - 1 : ksplit));
+                Ls += D * (1.f / float(pbranch ? ksplit - 1 : ksplit));
+                if (classes) cls[Stats::kClassDelta] += D * (1.f / float(pbranch ? ksplit - 1 : ksplit));
               }
               L += Ls;
               if (sub > 0) st.pixel_split_samples++;
@@ -346,6 +356,36 @@ void RenderJob::run() {
                 if (ok && std::isfinite(dz)) tvar[f] += dz;
               }
             }
+            if (costs && branched && cfg_.record_branch && st.delta_prefix_rays > delta_k0 &&
+                (pixel + uint64_t(k)) % uint64_t(Stats::kBranchRecordEvery) == 1) {
+              // The record of two branched and two plain delta paths of one
+              // camera ray at an independent film position (PassResult::bdelta_*),
+              // in a sample whose own path traced on after a delta vertex:
+              // their differences' squares / 2 are each kind's variance at a
+              // fixed position, which the split's Sobol positions do not take
+              // away. After the sample and its records (whose values and Stats
+              // fields it does not touch), off the pixel's rays.
+              const uint64_t r0 = st.rays + st.shadow_rays + st.camera_rays;
+              Vec3 o2, d2;
+              float tmin2, tmax2;
+              camera_ray(rng, fx, fy, o2, d2, tmin2, tmax2);
+              const Color B = integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st, true);
+              brays += double(st.rays + st.shadow_rays + st.camera_rays - r0);
+              const uint64_t r1 = st.rays + st.shadow_rays + st.camera_rays;
+              const Color B2 = integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st, true);
+              const Color U1 = integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st, false);
+              const Color U2 = integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st, false);
+              brays_more += double(st.rays + st.shadow_rays + st.camera_rays - r1);
+              bn += 1.0;
+              auto fin = [](const Color& c) { return std::isfinite(c.x) && std::isfinite(c.y) && std::isfinite(c.z); };
+              if (fin(B) && fin(B2) && fin(U1) && fin(U2)) {
+                for (int c = 0; c < 3; ++c) {
+                  const double db = double(B[c]) - B2[c], du = double(U1[c]) - U2[c];
+                  bw += db * db / 6.0;   // (B - B2)^2 / 2, mean over RGB
+                  uw += du * du / 6.0;
+                }
+              }
+            }
           }
           const size_t i = (size_t(y) * W + x) * 3;
           for (int c = 0; c < 3; ++c) {
@@ -366,7 +406,11 @@ void RenderJob::run() {
             result_.walk_steps[j] = double(st.walk_steps - walk0);
             // (the training's guided traces apart: a cost of the rate-0 option alone)
             result_.trace_rays[j] = double(st.trace_rays - trace0);
-            result_.rays[j] = double(st.rays + st.shadow_rays + st.camera_rays - rays0) - result_.trace_rays[j];
+            result_.rays[j] = double(st.rays + st.shadow_rays + st.camera_rays - rays0) - result_.trace_rays[j] - brays - brays_more;
+            result_.bdelta_n[j] = bn;
+            result_.bdelta_rays[j] = brays;
+            result_.bdelta_within[j] = bw;
+            result_.udelta_within[j] = uw;
             result_.trace_hits[j] = thits;
             result_.trace_n[j] = tn;
             result_.trace_lobes[j] = double(st.trace_lobes - lobes0);

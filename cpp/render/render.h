@@ -58,6 +58,18 @@ struct PassResult {
   // chain path; the tails' rare paths as often as the records see them)
   std::vector<double> trace_tail[Stats::kTraceKs + 1], trace_seen[Stats::kTraceKs + 1], trace_chain_sum;
   std::vector<double> delta_sum, delta_sum_sq;
+  // ... and, where the integrator branches (Integrator::delta_branched), one
+  // sample in Stats::kBranchRecordEvery whose own path traced on after a delta
+  // vertex (it saw glass or a mirror) also records two branched delta paths
+  // (B_1, B_2) and two plain ones (U_1, U_2) of one camera ray of its own (an
+  // independent film position), after the sample, whose value they do not
+  // touch: bdelta_n (height x width) the samples that did, bdelta_rays the
+  // first tree's rays, bdelta_within / udelta_within the sums of (B_1 -
+  // B_2)^2 / 2 and (U_1 - U_2)^2 / 2 (mean over RGB): each kind's variance
+  // at a fixed film position, which the delta split's Sobol positions do not
+  // take away (chain_rates.learn_delta_split: where the trees keep much of
+  // it, plain paths). All four paths' rays are left out of `rays`.
+  std::vector<double> bdelta_n, bdelta_rays, bdelta_within, udelta_within;
   // The light tracer's photons of this pass (Integrator::light_tracer; 0:
   // none) and per pixel (height x width x 3) the sums of their splats and of
   // the splats' squares: the pixel's light-traced part is lt_sum / photons
@@ -87,6 +99,12 @@ struct PassConfig {
   // null (1 everywhere): each sample's light seen through delta scattering
   // only is averaged with k - 1 extra camera paths of that light alone.
   std::shared_ptr<const std::vector<float>> delta_split_map;
+  // Per pixel whether the delta split's extra paths branch (crop height x
+  // width, 1 or 0), or null (1 everywhere): 0 takes the plain Only path in a
+  // branching integrator's pixel (and keeps the sample's own delta part in
+  // the mean, as an integrator that does not branch). mpg learns it with the
+  // split (chain_rates.learn_delta_split).
+  std::shared_ptr<const std::vector<float>> delta_branch_map;
   // Per-pixel sample split k >= 1 (crop height x width, integers), or null (1
   // everywhere): each sample of the pixel is the mean of k independent camera
   // samples (camera ray, Li, delta split), so its variance is 1/k of one.
@@ -97,6 +115,9 @@ struct PassConfig {
   // (record_costs) 0 also switches off the record of the trace's forms.
   std::shared_ptr<const std::vector<float>> guided_trace_map;
   bool record_costs = false;
+  // ... and, with record_costs and a branching integrator, the records of the
+  // branched and plain delta paths (PassResult::bdelta_*; mpg's delta_plain)
+  bool record_branch = true;
   // Per pixel the sums and squares (mean over RGB) of each sample's value
   // split by where it entered (Stats::kClasses; PassResult::class_sum)
   bool record_classes = false;

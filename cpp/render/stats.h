@@ -102,6 +102,10 @@ struct Stats {
   static constexpr int kTraceKs = 4;
   static constexpr int kTraceRecorded = 2;   // (render.cpp forms the values from exactly two)
   static constexpr int kTraceRecordEvery = 4;   // samples per one that records (render.cpp)
+  // training passes of a branching integrator: samples per one that also records
+  // branched and plain delta paths, if its own path saw a delta vertex
+  // (PassResult::bdelta_*; render.cpp)
+  static constexpr int kBranchRecordEvery = 8;
   bool record_trace = false;
   Color sample_trace_hits_delta[kTraceKs] = {};
   TraceSample sample_traces[kTraceRecorded];

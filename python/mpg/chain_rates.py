@@ -97,7 +97,8 @@ class CostAccumulator:
     PASS_SUMS = ("sum", "sum_sq", "chain_m2", "chain_steps", "walk_steps", "rays", "alt_sum",
                  "alt_sum_sq", "alt_hits", "delta_rays", "delta_sum", "delta_sum_sq",
                  "trace_n", "trace_hits", "trace_rays", "trace_lobes", "trace_pt_lobes",
-                 "trace_tail0", "trace_seen0", "trace_chain_sum") + tuple(
+                 "trace_tail0", "trace_seen0", "trace_chain_sum",
+                 "bdelta_n", "bdelta_rays", "bdelta_within", "udelta_within") + tuple(
                      f"trace{k}_{x}" for k in TRACE_KS for x in ("sum", "sum_sq", "var", "tail", "seen"))
 
     def __init__(self, shape: tuple[int, int]):
@@ -138,11 +139,20 @@ class CostAccumulator:
         self.trace_rays = np.zeros(shape)
         self.trace_lobes = np.zeros(shape)      # the lobes their densities visited (LOBE_COST)
         self.trace_pt_lobes = np.zeros(shape)   # ... and the path tracer's weights against them
+        # the records of two branched and two plain delta paths of one camera
+        # ray (PassResult::bdelta_*; a branching integrator's passes, one sample
+        # in Stats::kBranchRecordEvery): the samples that recorded them, the
+        # first tree's rays, and the sums of (B1 - B2)^2 / 2 and (U1 - U2)^2 / 2
+        self.bdelta_n = np.zeros(shape)
+        self.bdelta_rays = np.zeros(shape)
+        self.bdelta_within = np.zeros(shape)
+        self.udelta_within = np.zeros(shape)
 
     def add(self, result: dict, spp: int, q: float | np.ndarray) -> None:
         self.n += spp
         for key in self.PASS_SUMS:
-            getattr(self, key)[...] += result[key]
+            if key in result or not key.startswith(("bdelta_", "udelta_")):   # (records of branching integrators only)
+                getattr(self, key)[...] += result[key]
         self.rate_sum += np.broadcast_to(np.asarray(q, dtype=float), self.rate_sum.shape) * spp
 
 
@@ -481,6 +491,39 @@ def _delta_parts(acc: CostAccumulator, objective: str, radius: int) -> tuple[np.
     return _box_blur(wgt * var_d, radius), 1.0 + _finite(acc.delta_rays) / n
 
 
+# learn_delta_split: a window's records of the branched and plain paths
+# (PassResult::bdelta_*) count only where it holds at least this many;
+# elsewhere the split's paths branch, as the integrator says.
+BRANCH_MIN_RECORDS = 32.0
+
+# learn_delta_split: where a branched path keeps more than this fraction of a
+# plain path's variance at a fixed film position (_branch_keep), the split's
+# extra paths are plain ones. A tree takes away the choice between reflection
+# and refraction at its first delta_branch vertices, and the delta split's
+# Sobol positions most of the rest (the pixel footprint's); a tree that keeps
+# much of the choice's variance pays 2-6x a plain path's rays for little.
+# Measured: double_slabs' trees keep ~0 of it where the light is seen in the
+# glass, chain_length_4's (four bumpy slabs, past the 8 levels and the
+# roulette) a median 0.4; 0.05 and 0.1 rendered alike, 0.2 a little worse
+# on chain_length_4 (docs/results.md, twenty-sixth session).
+BRANCH_KEEP_MAX = 0.1
+
+
+def _branch_keep(acc: CostAccumulator, objective: str, radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """(keep, ok) per pixel: the window's weighted variance of a branched
+    delta path at a fixed film position over a plain path's (the records'
+    sums of (B1 - B2)^2 / 2 and (U1 - U2)^2 / 2, each pair from one camera
+    ray), and where it is measured (at least BRANCH_MIN_RECORDS records in
+    the window and a plain-path variance above 0)."""
+    n_win = _box_blur(_finite(acc.bdelta_n), radius, total=True)
+    wgt = _weights(_finite(acc.sum) / max(float(acc.n), 1.0), objective, radius)
+    wb = _box_blur(wgt * _finite(acc.bdelta_within), radius, total=True)
+    wu = _box_blur(wgt * _finite(acc.udelta_within), radius, total=True)
+    ok = (n_win >= BRANCH_MIN_RECORDS) & (wu > 0.0)
+    keep = np.where(ok, wb / np.where(wu > 0.0, wu, 1.0), 0.0)
+    return keep, ok
+
+
 def delta_effective_samples(acc: CostAccumulator, radius: int = 3) -> np.ndarray:
     """Per pixel the effective number of training samples that carried the
     light seen through delta scattering only in the (2 radius + 1)^2 window,
@@ -497,12 +540,21 @@ def delta_effective_samples(acc: CostAccumulator, radius: int = 3) -> np.ndarray
     return np.where(w > 0.0, np.sum(n_c * s1, axis=2) / np.where(w > 0.0, w, 1.0), 0.0)
 
 
+def _branch_where(branched: bool | np.ndarray, shape: tuple) -> np.ndarray:
+    """Per pixel whether the split's extra paths branch: `branched` as a map
+    (learn_delta_split's info["branch_map"]) or one bool for all."""
+    if isinstance(branched, np.ndarray):
+        return np.asarray(branched, dtype=float) > 0.0
+    return np.full(shape, bool(branched))
+
+
 def delta_split_effect(acc: CostAccumulator, k: np.ndarray, radius: int = 3, objective: str = "relmse",
-                       branched: bool = False, min_samples: float = 0.0) -> tuple[float, float]:
+                       branched: bool | np.ndarray = False, min_samples: float = 0.0) -> tuple[float, float]:
     """(dv, dc): what a delta split map k takes from mean(wV) and adds to
     mean(C) (ray units), in learn_delta_split's model: k - 1 branched paths
     leave BRANCH_RESIDUAL / (k - 1) of the light's variance B at TREE_COST o
-    each, k unbranched ones 1 / k of it at o each. min_samples: only pixels
+    each, k unbranched ones 1 / k of it at o each; branched: one bool for all
+    pixels or learn_delta_split's branch map. min_samples: only pixels
     whose window carried that light in at least this many effective samples
     (delta_effective_samples) count in dv; all split pixels count in dc."""
     if acc.n < 2:
@@ -511,10 +563,9 @@ def delta_split_effect(acc: CostAccumulator, k: np.ndarray, radius: int = 3, obj
     k = np.asarray(k, dtype=float)
     split = k > 1.0
     km1 = np.maximum(k - 1.0, 1.0)
-    if branched:
-        kept, cost = BRANCH_RESIDUAL / km1, TREE_COST * o * km1
-    else:
-        kept, cost = 1.0 / np.maximum(k, 1.0), o * km1
+    br = _branch_where(branched, k.shape)
+    kept = np.where(br, BRANCH_RESIDUAL / km1, 1.0 / np.maximum(k, 1.0))
+    cost = np.where(br, TREE_COST * o * km1, o * km1)
     seen = split if min_samples <= 0.0 else split & (delta_effective_samples(acc, radius) >= min_samples)
     dv = float(np.mean(np.where(seen, b * (1.0 - kept), 0.0)))
     dc = float(np.mean(np.where(split, cost, 0.0)))
@@ -549,6 +600,11 @@ def learn_delta_split(acc: CostAccumulator, q: np.ndarray, radius: int = 3, obje
     an unbranched one's), at TREE_COST o. To first order in F, that lowers F
     iff w_p B_p / mean(wV) > TREE_COST o_p / mean(C): k = 2 there, 1
     elsewhere (a second branched path would only halve the small rest).
+    Except where the training's records (_branch_keep) show the trees keeping
+    more than BRANCH_KEEP_MAX of a plain path's variance at a fixed film
+    position (deep stacks of bumpy glass, past the tree's levels): there the
+    split's paths are plain ones, k as above. info["branch_map"] (1: branched,
+    0: plain; the caller pops it) says which.
 
     means: (mean(wV), mean(C)) to weigh the split against, the render's as
     the rates' model predicts it (learn_jointly); None: the training
@@ -568,14 +624,23 @@ def learn_delta_split(acc: CostAccumulator, q: np.ndarray, radius: int = 3, obje
     else:
         v_mean, c_mean = float(means[0]), float(means[1])
     k = np.ones(shape)
-    if v_mean > 0.0 and c_mean > 0.0 and branched:
-        k = np.where(b * c_mean > TREE_COST * o * v_mean, 2.0, 1.0)
-    elif v_mean > 0.0 and c_mean > 0.0:
+    plain = np.zeros(shape, dtype=bool)
+    if v_mean > 0.0 and c_mean > 0.0:
         k = np.clip(np.rint(np.sqrt(b * c_mean / (o * v_mean))), 1.0, float(k_max))
         k = np.where(np.isfinite(k), k, 1.0)
+        if branched:
+            # plain paths (Eq. 3's k) where the records say a tree keeps more
+            # than BRANCH_KEEP_MAX of the choice's variance; else k = 2 branched
+            keep, ok = _branch_keep(acc, objective, radius)
+            plain = ok & (keep > BRANCH_KEEP_MAX)
+            k = np.where(plain, k, np.where(b * c_mean > TREE_COST * o * v_mean, 2.0, 1.0))
     split = k > 1.0
     info.update(delta_split_fraction=float(np.mean(split)),
                 delta_split_mean=float(np.mean(k[split])) if np.any(split) else 1.0)
+    if branched:
+        info["delta_split_plain_fraction"] = float(np.mean(plain[split])) if np.any(split) else 0.0
+    # per pixel whether the split's paths branch (popped by the caller)
+    info["branch_map"] = np.where(split & plain, 0.0, 1.0).astype(np.float32)
     return k.astype(np.float32), info
 
 
@@ -624,14 +689,15 @@ def learn_jointly(acc: CostAccumulator, objective: str = "relmse", branched: boo
     learn_rates_traced's other arguments."""
     q, t, info = learn_rates_traced(acc, objective=objective, radius=radius, **rate_kw)
     k = np.ones(acc.chain_m2.shape, dtype=np.float32)
-    kinfo: dict = {}
+    b_prev = np.ones(acc.chain_m2.shape, dtype=np.float32)
+    kinfo: dict = {"branch_map": b_prev}
     done = 0
     if not info.get("chain_rate_learned"):
         return q, t, info, k, kinfo
     # the maps learned one after the other, and their F in the model
     k_seq, kinfo_seq = learn_delta_split(acc, q, radius=radius, objective=objective, branched=branched)
-    dv, dc = delta_split_effect(acc, k_seq, radius=radius, objective=objective, branched=branched,
-                                min_samples=min_samples)
+    dv, dc = delta_split_effect(acc, k_seq, radius=radius, objective=objective,
+                                branched=kinfo_seq["branch_map"] if branched else False, min_samples=min_samples)
     alone = (q, t, info)
     # (as learn_rates_traced's model with that split's offsets: V1 less dv, at
     # least 0, then the forms' and rates' terms the rates alone added)
@@ -644,11 +710,11 @@ def learn_jointly(acc: CostAccumulator, objective: str = "relmse", branched: boo
     for done in range(1, rounds + 1):
         k_new, kinfo = learn_delta_split(acc, q, radius=radius, objective=objective, branched=branched,
                                          means=(info["chain_rate_model_v"], info["chain_rate_model_c"]))
-        if np.array_equal(k_new, k):
+        if np.array_equal(k_new, k) and np.array_equal(kinfo["branch_map"], b_prev):
             break
-        k = k_new
-        dv, dc = delta_split_effect(acc, k, radius=radius, objective=objective, branched=branched,
-                                    min_samples=min_samples)
+        k, b_prev = k_new, kinfo["branch_map"]
+        dv, dc = delta_split_effect(acc, k, radius=radius, objective=objective,
+                                    branched=b_prev if branched else False, min_samples=min_samples)
         q, t, info = learn_rates_traced(acc, objective=objective, radius=radius, v_offset=dv, c_offset=dc,
                                         **rate_kw)
     # kept if a split was learned together (round 1 splitting nothing leaves
@@ -686,7 +752,7 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
                       objective: str = "mse", k_max: int = PIXEL_SPLIT_MAX,
                       iterations: int = 30,
                       where: np.ndarray | None = None,
-                      branched: bool = False,
+                      branched: bool | np.ndarray = False,
                       max_cost: float | None = None) -> tuple[np.ndarray, dict]:
     """Per-pixel count k of camera samples averaged in each sample of the pixel
     (design-notes "Splitting the pixels").
@@ -708,7 +774,8 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
     training sample saw is not split).
 
     branched (the delta split's extra paths are branched, delta_branch > 0,
-    and a split sample leaves its own delta part out): where kd > 1 the light
+    and a split sample leaves its own delta part out; one bool or
+    learn_delta_split's branch map): where kd > 1 and branched the light
     seen through delta scattering only keeps BRANCH_RESIDUAL of its variance,
     not 1 / kd, and each extra path costs TREE_COST o, as in
     learn_delta_split.
@@ -735,10 +802,11 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
     var_d = _sample_variance(acc.delta_sum, acc.delta_sum_sq, n)
     qc = np.clip(q, 1e-3, 1.0)
     v = np.where(q > 0.0, var_t + (1.0 / qc - 1.0 / np.maximum(q_t, 1e-3)) * m2, alt_mse)
-    kept = np.where(kd > 1.0, BRANCH_RESIDUAL, 1.0) if branched else 1.0 / kd
+    br = _branch_where(branched, kd.shape) & (kd > 1.0)
+    kept = np.where(br, BRANCH_RESIDUAL, 1.0 / kd)
     v = np.maximum(v - (1.0 - kept) * var_d, 0.0)
     o = 1.0 + _finite(acc.delta_rays) / n
-    c = c0 + np.where(q > 0.0, qc * c1, -mis) + (kd - 1.0) * o * (TREE_COST if branched else 1.0)
+    c = c0 + np.where(q > 0.0, qc * c1, -mis) + (kd - 1.0) * o * np.where(br, TREE_COST, 1.0)
     c = np.maximum(c, 1e-6)
     wv = _box_blur(_weights(mean, objective, radius) * v, radius)
 

@@ -46,6 +46,13 @@ DELTA_BRANCH = 8
 # own MSE 1.43x lower on double_slabs, 1.11x slab, the rest level
 # (docs/results.md, twenty-fifth session)
 DELTA_SPLIT_SOBOL = True
+# mpg's default delta_plain: the delta split's extra paths plain where the
+# training's records show the trees keeping more than BRANCH_KEEP_MAX of the
+# lobe choice's variance; against branched everywhere (3 seeds, docs/results.md,
+# twenty-sixth session) own MSE 1.34x lower on chain_length_4, 1.23x on
+# double_slabs; the slab, sphere and pool have no such pixel (level; the
+# records cost them up to 4 % of their samples)
+DELTA_PLAIN = True
 
 # The photon rate the learned one is compared with in the stats'
 # light_trace_model_gain: the core's default for mpg in chain mode
@@ -350,6 +357,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # joint_maps: the rates, traces and delta split learned together
     # (chain_rates.learn_jointly); off: one after the other
     joint = _as_bool("joint_maps", params.pop("joint_maps", JOINT_MAPS))
+    # delta_plain: the training records where the trees keep the lobe choice's
+    # variance and the split takes plain paths there (chain_rates.learn_delta_split)
+    plain = _as_bool("delta_plain", params.pop("delta_plain", DELTA_PLAIN))
     # trace_min_hits: the samples with chain light a trace form's window needs
     # (chain_rates.learn_rates_traced)
     asked_hits = "trace_min_hits" in params
@@ -493,7 +503,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                                                             count_limits=auto_halvings,
                                                             guide_fraction=train_alpha))
             job = _core.RenderJob(core, integ, k, seed, 1_000_000 + iterations, threads or 0,
-                                  record_costs=auto, guided_trace_map=no_trace, light_trace=False)
+                                  record_costs=auto, guided_trace_map=no_trace, light_trace=False,
+                                  record_branch=plain)
             while not job.wait(0.05):
                 if budget_t is not None and _time.monotonic() - t0 > budget_t:
                     job.cancel()
@@ -544,7 +555,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         if show:
             sys.stderr.write("\n")
     rate_info: dict[str, Any] = {}
-    qmap = kmap = None
+    qmap = kmap = bmap = None
     cam = scene.desc.camera
 
     def uniform(k: float) -> np.ndarray:
@@ -552,9 +563,23 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         return np.full((int(cam.crop[3]), int(cam.crop[2])), float(k), dtype=np.float32)
 
     def learned(m: np.ndarray, info: dict) -> np.ndarray | None:
-        """A learned split map, None when it splits no pixel; its summary joins rate_info."""
+        """A learned split map, None when it splits no pixel; its summary joins
+        rate_info (the delta split's branch map, info["branch_map"], goes to bmap)."""
+        nonlocal bmap
+        info = dict(info)
+        b = info.pop("branch_map", None)
         rate_info.update(info)
-        return m if np.any(m > 1) else None
+        if not np.any(m > 1):
+            return None
+        if b is not None:
+            bmap = b if not np.all(b > 0) else None   # (None: branched wherever the integrator branches)
+        return m
+
+    def branch_where() -> bool | np.ndarray:
+        """Where the split's extra paths branch: the learned map, or all (delta_branch > 0) or none."""
+        if params["delta_branch"] <= 0:
+            return False
+        return bmap if bmap is not None else True
 
     def rates() -> np.ndarray:
         """The render's chain rates per pixel: the learned map, or the one rate."""
@@ -588,18 +613,19 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             # the other, chain_rate_model_v/_c are the rates' alone and the
             # split takes dv off (V1 clamped at 0) and adds dc; where they were
             # learned together (joint_rounds > 0), v and c hold it already
-            dv, dc = delta_split_effect(costs, kmap, objective=objective, branched=params["delta_branch"] > 0,
+            dv, dc = delta_split_effect(costs, kmap, objective=objective,
+                                        branched=branch_where(),
                                         min_samples=joint_min_samples if joint else 0.0)
             rate_info.update(delta_split_model_dv=dv, delta_split_model_dc=dc)
     if isinstance(split, int) and split > 1:
-        kmap = uniform(split)
+        kmap, bmap = uniform(split), None
         rate_info.update(delta_split_fraction=1.0, delta_split_mean=float(split))
     smap = None
     if psplit in ("mse", "relmse", "handoff") and costs is not None and costs.n >= 2:
         smap = learned(*learn_pixel_split(costs, rates(), kmap if kmap is not None else uniform(1),
                                           objective="mse" if psplit == "handoff" else psplit,
                                           where=(rates() <= 0.0) if psplit == "handoff" else None,
-                                          branched=params["delta_branch"] > 0,
+                                          branched=branch_where(),
                                           max_cost=psplit_cap))
     elif isinstance(psplit, int) and psplit > 1:
         smap = uniform(psplit)
@@ -623,7 +649,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     if photon_auto and spp_train >= PHOTON_PILOT_MIN_TRAINING:
         photon_info = _learn_photon_rate(core, scene, params, photon_auto, guide, seed, threads,
                                          dict(chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap,
-                                              guided_trace_map=gmap))
+                                              guided_trace_map=gmap, delta_branch_map=bmap))
         # (the pilot's time comes off the render's budget; seconds_training
         # includes it, seconds_photon_pilot says how much)
         seconds_training = _time.monotonic() - t0
@@ -631,7 +657,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
                  chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap, sampler=sampler,
-                 guided_trace_map=gmap, record_classes=record_classes)
+                 guided_trace_map=gmap, record_classes=record_classes, delta_branch_map=bmap)
     st: dict[str, Any] = img.stats
     st["warnings"] = list(dict.fromkeys(st.get("warnings", []) + warnings))
     st["integrator"] = "mpg"
@@ -672,6 +698,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["delta_split"] = ("learned" if split == "auto" else str(split)) if kmap is not None else "off"
     img.chain_rate_map = qmap
     img.delta_split_map = kmap
+    img.delta_branch_map = bmap
     st["pixel_split"] = str(psplit) if smap is not None else "off"
     img.pixel_split_map = smap
     return img

@@ -22,6 +22,8 @@ class Image:
     chain_rate_map: float32 (H, W), mpg's learned per-pixel chain rates, or None.
     delta_split_map: float32 (H, W), mpg's camera paths per sample for the light
               seen through delta scattering only (1: no split), or None.
+    delta_branch_map: float32 (H, W), where those paths branch (1) or not (0),
+              mpg's learned choice, or None (wherever the integrator branches).
     pixel_split_map: float32 (H, W), mpg's camera samples averaged per sample
               (1: no split), or None.
     """
@@ -32,6 +34,7 @@ class Image:
     stats: dict[str, Any] = field(default_factory=dict)
     chain_rate_map: np.ndarray | None = None
     delta_split_map: np.ndarray | None = None
+    delta_branch_map: np.ndarray | None = None
     pixel_split_map: np.ndarray | None = None
     # render(record_classes=True): per pixel and class the sums of the samples'
     # parts and of their squares (mpg.render.CLASS_NAMES), else None

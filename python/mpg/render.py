@@ -36,10 +36,10 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "chain_handoff_negligible",
                 "delta_split", "pixel_split", "pixel_split_max_cost", "limit_in_training", "known_types",
                 "handoff_guided", "learn_trace", "trace_tails", "joint_maps",
-                "trace_min_hits", "joint_min_samples"}
+                "trace_min_hits", "joint_min_samples", "delta_plain"}
 BOOL_PARAMS = {"hide_emitters", "delta_split_sobol", "light_trace_through", "light_trace_area", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "mis_rate", "chain_handoff", "limit_in_training", "known_types",
-               "learn_trace", "trace_tails", "joint_maps"}
+               "learn_trace", "trace_tails", "joint_maps", "delta_plain"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
 # The SMS paper's integrators, with their parameter names, map onto `sms`.
 SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
@@ -272,6 +272,7 @@ def render(
     sampler: str | None = None,
     guided_trace_map: np.ndarray | None = None,
     record_classes: bool = False,
+    delta_branch_map: np.ndarray | None = None,
 ) -> Image:
     """Render `scene` and return an Image.
 
@@ -285,6 +286,9 @@ def render(
     delta_split_map: per-pixel delta-split counts (crop height x width, integers
       1..64), mpg's learned ones: a pixel's light seen through delta scattering
       only is averaged over k camera paths per sample.
+    delta_branch_map: per pixel 1 or 0 (crop height x width), mpg's learned
+      one: 0 makes a branching integrator's delta-split paths unbranched there
+      (None: branched wherever the integrator branches).
     pixel_split_map: per-pixel sample splits (crop height x width, integers
       1..64), mpg's learned ones: each sample of a pixel is the mean of k
       camera samples.
@@ -409,7 +413,8 @@ def render(
                                       delta_split_map=delta_split_map,
                                       pixel_split_map=pixel_split_map,
                                       stratify=sampler == "stratified", sample_offset=done,
-                                      guided_trace_map=guided_trace_map, record_classes=record_classes)
+                                      guided_trace_map=guided_trace_map, record_classes=record_classes,
+                                      delta_branch_map=delta_branch_map)
             except ValueError as e:   # a bad chain_rate_map (shape, values)
                 raise RenderError(str(e)) from None
             cancelled_by_time = False
