@@ -75,10 +75,20 @@ def test_training_records_the_paths_variance_at_a_fixed_position(slabs):
     difference of two paths from different positions). A directly seen
     emitter's edge (no delta vertex) records nothing."""
     spp = 512
-    a = run_pass(slabs, "path", spp, 9, {"delta_branch": 0}, record_costs=True)
-    b = run_pass(slabs, "path", spp, 9, {"delta_branch": 8}, record_costs=True)
+    a = run_pass(slabs, "path", spp, 9, {"delta_branch": 0}, record_costs=True, record_branch=True)
+    b = run_pass(slabs, "path", spp, 9, {"delta_branch": 8}, record_costs=True, record_branch=True)
     for key in ("sum", "sum_sq", "rays", "delta_rays", "delta_sum", "delta_sum_sq"):
         assert np.array_equal(a[key], b[key]), key
+    # ... and a chain integrator's records (the path tracer alone's values, the traces')
+    keys = ("sum", "sum_sq", "rays", "chain_m2", "walk_steps", "alt_sum", "alt_sum_sq", "alt_hits",
+            "delta_rays", "delta_sum", "delta_sum_sq", "trace_n", "trace1_sum", "trace1_var")
+    sa = run_pass(slabs, "sms_star", 32, 9, {"delta_branch": 0}, record_costs=True, record_branch=True)
+    sb = run_pass(slabs, "sms_star", 32, 9, {"delta_branch": 8}, record_costs=True, record_branch=True)
+    for key in keys:
+        assert np.array_equal(sa[key], sb[key]), key
+    assert sb["bdelta_n"].sum() > 0 and sa["alt_hits"].sum() > 0
+    # (record_branch is off unless asked: other record_costs callers pay nothing)
+    assert not run_pass(slabs, "path", 8, 9, {"delta_branch": 8}, record_costs=True)["bdelta_n"].any()
     assert not a["bdelta_n"].any() and not a["udelta_within"].any()
     assert (b["bdelta_n"] <= spp // 8).all() and b["bdelta_n"].max() == spp // 8
     glass = b["delta_rays"] > 0
@@ -90,7 +100,7 @@ def test_training_records_the_paths_variance_at_a_fixed_position(slabs):
     # (0.04-0.10 over seeds 0-5; from two positions it would be about 1 or more)
     assert b["bdelta_within"][lit].sum() < 0.3 * b["udelta_within"][lit].sum()
     edge = _edge_scene(8)
-    e = run_pass(edge, "path", 64, 1, {"delta_branch": 8}, record_costs=True)
+    e = run_pass(edge, "path", 64, 1, {"delta_branch": 8}, record_costs=True, record_branch=True)
     assert not e["bdelta_n"].any() and not e["bdelta_rays"].any()
 
 
@@ -169,10 +179,9 @@ def test_mpg_learns_a_branch_map_and_renders_with_it(scenes_dir):
     st = img.stats
     assert st["delta_split"] == "learned" and "delta_split_plain_fraction" in st
     assert st["rejected_samples"] == 0 and np.isfinite(img.rgb).all()
-    if img.delta_branch_map is not None:
-        assert set(np.unique(img.delta_branch_map)) <= {0.0, 1.0}
-        assert np.all(img.delta_split_map[img.delta_branch_map == 0] > 1)
     assert st["delta_split_plain_fraction"] > 0 and img.delta_branch_map is not None
+    assert set(np.unique(img.delta_branch_map)) <= {0.0, 1.0}
+    assert np.all(img.delta_split_map[img.delta_branch_map == 0] > 1)
     off = mpg.render(sc, {"type": "mpg", "delta_plain": False}, spp=512, seed=3, progress=False)
     assert off.stats["delta_split_plain_fraction"] == 0.0 and off.delta_branch_map is None
     assert off.stats["delta_split_fraction"] > 0

@@ -796,7 +796,7 @@ PYBIND11_MODULE(_core, m) {
          py::arg("delta_split_map") = py::none(), py::arg("pixel_split_map") = py::none(),
          py::arg("stratify") = false, py::arg("sample_offset") = 0, py::arg("guided_trace_map") = py::none(),
          py::arg("record_classes") = false, py::arg("light_trace") = true, py::arg("delta_branch_map") = py::none(),
-         py::arg("record_branch") = true)
+         py::arg("record_branch") = false)
       .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
       .def("cancel", &RenderJob::cancel)
       .def_property_readonly("progress", &RenderJob::progress)

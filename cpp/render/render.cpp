@@ -357,14 +357,15 @@ void RenderJob::run() {
               }
             }
             if (costs && branched && cfg_.record_branch && st.delta_prefix_rays > delta_k0 &&
-                (pixel + uint64_t(k)) % uint64_t(Stats::kBranchRecordEvery) == 1) {
+                (pixel + uint64_t(k) + cfg_.pass) % uint64_t(Stats::kBranchRecordEvery) == 1) {
               // The record of two branched and two plain delta paths of one
               // camera ray at an independent film position (PassResult::bdelta_*),
               // in a sample whose own path traced on after a delta vertex:
               // their differences' squares / 2 are each kind's variance at a
               // fixed position, which the split's Sobol positions do not take
-              // away. After the sample and its records (whose values and Stats
-              // fields it does not touch), off the pixel's rays.
+              // away. After the sample, off its value, its per-pixel records
+              // and the pixel's rays (the pass's Stats counters do count them).
+              // Which samples record moves with the pass.
               const uint64_t r0 = st.rays + st.shadow_rays + st.camera_rays;
               Vec3 o2, d2;
               float tmin2, tmax2;

@@ -64,7 +64,7 @@ struct PassResult {
   // (B_1, B_2) and two plain ones (U_1, U_2) of one camera ray of its own (an
   // independent film position), after the sample, whose value they do not
   // touch: bdelta_n (height x width) the samples that did, bdelta_rays the
-  // first tree's rays, bdelta_within / udelta_within the sums of (B_1 -
+  // rays of the record's camera ray and first tree, bdelta_within / udelta_within the sums of (B_1 -
   // B_2)^2 / 2 and (U_1 - U_2)^2 / 2 (mean over RGB): each kind's variance
   // at a fixed film position, which the delta split's Sobol positions do not
   // take away (chain_rates.learn_delta_split: where the trees keep much of
@@ -117,7 +117,7 @@ struct PassConfig {
   bool record_costs = false;
   // ... and, with record_costs and a branching integrator, the records of the
   // branched and plain delta paths (PassResult::bdelta_*; mpg's delta_plain)
-  bool record_branch = true;
+  bool record_branch = false;
   // Per pixel the sums and squares (mean over RGB) of each sample's value
   // split by where it entered (Stats::kClasses; PassResult::class_sum)
   bool record_classes = false;

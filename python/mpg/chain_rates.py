@@ -519,7 +519,9 @@ def _branch_keep(acc: CostAccumulator, objective: str, radius: int) -> tuple[np.
     wgt = _weights(_finite(acc.sum) / max(float(acc.n), 1.0), objective, radius)
     wb = _box_blur(wgt * _finite(acc.bdelta_within), radius, total=True)
     wu = _box_blur(wgt * _finite(acc.udelta_within), radius, total=True)
-    ok = (n_win >= BRANCH_MIN_RECORDS) & (wu > 0.0)
+    # (a window whose plain records are all 0 -- mirrors only -- keeps the
+    # table's round-off: not measured)
+    ok = (n_win >= BRANCH_MIN_RECORDS) & (wu > 1e-9 * max(float(wu.max()), 1e-300))
     keep = np.where(ok, wb / np.where(wu > 0.0, wu, 1.0), 0.0)
     return keep, ok
 
