@@ -20,6 +20,30 @@ from test_delta_split import _acc, _edge_scene
 
 RES = 32
 
+# test_sampler's EDGE seen in a mirror: the camera looks straight down at a
+# perfect conductor; above it an emitting half-plane faces down, its edge
+# crossing the image at 20 degrees.
+MIRROR_EDGE = """<scene version="3.0.0">
+  <integrator type="path"/>
+  <sensor type="perspective">
+    <float name="fov" value="30"/>
+    <transform name="to_world"><lookat origin="0, 4, 0" target="0, 0, 0" up="0, 0, -1"/></transform>
+    <sampler type="independent"><integer name="sample_count" value="16"/></sampler>
+    <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/>
+      <rfilter type="box"/></film>
+  </sensor>
+  <shape type="rectangle">
+    <transform name="to_world"><scale value="20"/><rotate x="1" angle="-90"/></transform>
+    <bsdf type="conductor"/>
+  </shape>
+  <shape type="rectangle">
+    <transform name="to_world">
+      <scale value="10"/><rotate x="1" angle="90"/><translate x="10" y="8"/><rotate y="1" angle="20"/>
+    </transform>
+    <emitter type="area"><rgb name="radiance" value="1"/></emitter>
+  </shape>
+</scene>"""
+
 
 @pytest.fixture(scope="module")
 def slabs(scenes_dir):
@@ -70,10 +94,10 @@ def test_training_records_the_paths_variance_at_a_fixed_position(slabs):
     paths of one camera ray: the samples' own sums, squares and rays are bit
     for bit those of the pass without branching (the records are off them);
     on double_slabs the trees keep below 0.3 of the plain paths' variance
-    at a fixed position where the light is seen in the glass (the pixel
-    footprint's variance, which both kinds share, would not cancel in a
-    difference of two paths from different positions). A directly seen
-    emitter's edge (no delta vertex) records nothing."""
+    at a fixed position where the light is seen in the glass. A directly
+    seen emitter's edge (no delta vertex) records nothing; seen in a perfect
+    mirror, both kinds' records are exactly 0 (two paths from two positions
+    would differ at the edge)."""
     spp = 512
     a = run_pass(slabs, "path", spp, 9, {"delta_branch": 0}, record_costs=True, record_branch=True)
     b = run_pass(slabs, "path", spp, 9, {"delta_branch": 8}, record_costs=True, record_branch=True)
@@ -102,6 +126,14 @@ def test_training_records_the_paths_variance_at_a_fixed_position(slabs):
     edge = _edge_scene(8)
     e = run_pass(edge, "path", 64, 1, {"delta_branch": 8}, record_costs=True, record_branch=True)
     assert not e["bdelta_n"].any() and not e["bdelta_rays"].any()
+    # the same edge seen in a perfect mirror: a path's value is its film
+    # position's alone, so both records are exactly 0 though the edge pixels vary
+    m = run_pass(mpg.load_string(MIRROR_EDGE), "path", 256, 1, {"delta_branch": 8}, record_costs=True,
+                 record_branch=True)
+    assert m["bdelta_n"].sum() == 256 // 8 * 64
+    assert not m["bdelta_within"].any() and not m["udelta_within"].any()
+    mean = m["sum"][..., 0] / 256
+    assert (m["sum_sq"][..., 0] / 256 - mean * mean).max() > 0.01   # (the edge pixels vary)
 
 
 def _records(acc, keep_rows, n_rec):
