@@ -17,22 +17,14 @@ from mpg.chain_rates import (BRANCH_KEEP_MAX, BRANCH_MIN_RECORDS, BRANCH_RESIDUA
 from mpg.render import RenderError
 from stats_util import REGIONS_32, image_zmax, run_pass
 from test_delta_split import _acc, _edge_scene
+from test_sampler import EDGE
 
 RES = 32
 
-# test_sampler's EDGE seen in a mirror: the camera looks straight down at a
-# perfect conductor; above it an emitting half-plane faces down, its edge
+# test_sampler's EDGE seen in a mirror: its camera looks straight down at a
+# perfect conductor; above it the emitting half-plane faces down, its edge
 # crossing the image at 20 degrees.
-MIRROR_EDGE = """<scene version="3.0.0">
-  <integrator type="path"/>
-  <sensor type="perspective">
-    <float name="fov" value="30"/>
-    <transform name="to_world"><lookat origin="0, 4, 0" target="0, 0, 0" up="0, 0, -1"/></transform>
-    <sampler type="independent"><integer name="sample_count" value="16"/></sampler>
-    <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/>
-      <rfilter type="box"/></film>
-  </sensor>
-  <shape type="rectangle">
+MIRROR_EDGE = EDGE.format(sampler="independent").split("  <shape")[0] + """  <shape type="rectangle">
     <transform name="to_world"><scale value="20"/><rotate x="1" angle="-90"/></transform>
     <bsdf type="conductor"/>
   </shape>

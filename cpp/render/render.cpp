@@ -171,7 +171,7 @@ void RenderJob::run() {
           st.split_delta = ksplit > 1;
           // the split's extra paths branched here (the integrator's kind, unless the map says no)
           const bool pbranch = branched && !(bmap && !((*bmap)[size_t(y) * W + x] > 0.f));
-          double bn = 0, brays = 0, brays_more = 0, bw = 0, uw = 0;   // (record_costs, branched: PassResult::bdelta_*)
+          double bn = 0, brays = 0, bw = 0, uw = 0;   // (record_costs, branched: PassResult::bdelta_*)
           const int kpix = smap ? std::max(1, int((*smap)[size_t(y) * W + x])) : 1;
           const uint64_t steps0 = st.chain_steps, walk0 = st.walk_steps, rays0 = st.rays + st.shadow_rays + st.camera_rays;
           const uint64_t delta0 = st.delta_prefix_rays, trace0 = st.trace_rays;
@@ -371,15 +371,12 @@ void RenderJob::run() {
               float tmin2, tmax2;
               camera_ray(rng, fx, fy, o2, d2, tmin2, tmax2);
               const Color B = integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st, true);
-              brays += double(st.rays + st.shadow_rays + st.camera_rays - r0);
-              const uint64_t r1 = st.rays + st.shadow_rays + st.camera_rays;
               const Color B2 = integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st, true);
               const Color U1 = integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st, false);
               const Color U2 = integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st, false);
-              brays_more += double(st.rays + st.shadow_rays + st.camera_rays - r1);
+              brays += double(st.rays + st.shadow_rays + st.camera_rays - r0);
               bn += 1.0;
-              auto fin = [](const Color& c) { return std::isfinite(c.x) && std::isfinite(c.y) && std::isfinite(c.z); };
-              if (fin(B) && fin(B2) && fin(U1) && fin(U2)) {
+              if (is_finite(B) && is_finite(B2) && is_finite(U1) && is_finite(U2)) {
                 for (int c = 0; c < 3; ++c) {
                   const double db = double(B[c]) - B2[c], du = double(U1[c]) - U2[c];
                   bw += db * db / 6.0;   // (B - B2)^2 / 2, mean over RGB
@@ -407,7 +404,7 @@ void RenderJob::run() {
             result_.walk_steps[j] = double(st.walk_steps - walk0);
             // (the training's guided traces apart: a cost of the rate-0 option alone)
             result_.trace_rays[j] = double(st.trace_rays - trace0);
-            result_.rays[j] = double(st.rays + st.shadow_rays + st.camera_rays - rays0) - result_.trace_rays[j] - brays - brays_more;
+            result_.rays[j] = double(st.rays + st.shadow_rays + st.camera_rays - rays0) - result_.trace_rays[j] - brays;
             result_.bdelta_n[j] = bn;
             result_.bdelta_rays[j] = brays;
             result_.bdelta_within[j] = bw;

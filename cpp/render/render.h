@@ -63,12 +63,12 @@ struct PassResult {
   // vertex (it saw glass or a mirror) also records two branched delta paths
   // (B_1, B_2) and two plain ones (U_1, U_2) of one camera ray of its own (an
   // independent film position), after the sample, whose value they do not
-  // touch: bdelta_n (height x width) the samples that did, bdelta_rays the
-  // rays of the record's camera ray and first tree, bdelta_within / udelta_within the sums of (B_1 -
+  // touch: bdelta_n (height x width) the samples that did, bdelta_rays their
+  // rays (left out of `rays`), bdelta_within / udelta_within the sums of (B_1 -
   // B_2)^2 / 2 and (U_1 - U_2)^2 / 2 (mean over RGB): each kind's variance
   // at a fixed film position, which the delta split's Sobol positions do not
   // take away (chain_rates.learn_delta_split: where the trees keep much of
-  // it, plain paths). All four paths' rays are left out of `rays`.
+  // it, plain paths).
   std::vector<double> bdelta_n, bdelta_rays, bdelta_within, udelta_within;
   // The light tracer's photons of this pass (Integrator::light_tracer; 0:
   // none) and per pixel (height x width x 3) the sums of their splats and of

@@ -141,8 +141,8 @@ class CostAccumulator:
         self.trace_pt_lobes = np.zeros(shape)   # ... and the path tracer's weights against them
         # the records of two branched and two plain delta paths of one camera
         # ray (PassResult::bdelta_*; a branching integrator's passes, one sample
-        # in Stats::kBranchRecordEvery): the samples that recorded them, the
-        # first tree's rays, and the sums of (B1 - B2)^2 / 2 and (U1 - U2)^2 / 2
+        # in Stats::kBranchRecordEvery): the samples that recorded them, their
+        # rays, and the sums of (B1 - B2)^2 / 2 and (U1 - U2)^2 / 2
         self.bdelta_n = np.zeros(shape)
         self.bdelta_rays = np.zeros(shape)
         self.bdelta_within = np.zeros(shape)
