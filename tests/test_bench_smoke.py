@@ -116,8 +116,11 @@ def test_compare(env):
             floor = sc["reference"]["convergence"][f"mse_floor_{region}"]
             assert m["summary"]["mse_above_floor"][region] == pytest.approx(
                 m["summary"][region]["mse"]["mean"] - floor, rel=1e-9, abs=1e-15)
+            # the seeds' variance (metrics.seed_variance; tested in test_metrics)
+            sv = m["summary"]["seed_variance"][region]
+            assert sv is not None and sv > 0 and np.isfinite(sv)
         assert 0.2 < m["summary"]["seconds"]["mean"] < 1.0
-    assert "relMSE caustic" in text and "MSE − floor caustic" in text
+    assert "relMSE caustic" in text and "MSE − floor caustic" in text and "seed var. caustic" in text
 
 
 def test_compare_interleaves_the_methods(env, monkeypatch):

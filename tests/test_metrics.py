@@ -131,3 +131,37 @@ def test_shape_and_region_errors():
     with pytest.raises(MetricError, match="mask has shape"):
         mse(const(4, 4, 1), const(4, 4, 1), np.ones((3, 4), bool))
     assert issubclass(MetricError, ValueError)
+
+
+def test_seed_variance_is_the_mse_of_unbiased_renders():
+    """Renders = truth + independent noise of known variance: the seeds'
+    variance estimates the noise's variance, and so each render's mean MSE
+    against the truth, with no reference in it. 3 renders of 3 x 64^2 values:
+    the estimate's relative standard deviation is sqrt(2 / (2 * 12288)) =
+    0.9 %, so 5 % is over 5 sigma."""
+    rng = np.random.default_rng(7)
+    truth = rng.uniform(0.0, 2.0, (64, 64, 3))
+    sigma = np.where(np.arange(64)[None, :, None] < 32, 0.1, 0.3) * np.ones_like(truth)
+    renders = [truth + sigma * rng.standard_normal(truth.shape) for _ in range(3)]
+    expect = float(np.mean(sigma ** 2))
+    assert metrics.seed_variance(renders) == pytest.approx(expect, rel=0.05)
+    assert np.mean([mse(r, truth) for r in renders]) == pytest.approx(expect, rel=0.05)
+    # a region: the left half's noise alone (6 144 values: 1.8 %, 10 % is over 5 sigma)
+    assert metrics.seed_variance(renders, (0.0, 0.0, 0.5, 1.0)) == pytest.approx(0.01, rel=0.1)
+    # two renders: half their squared difference, by hand on one pixel
+    a, b = const(1, 1, 1.0), const(1, 1, 3.0)
+    assert metrics.seed_variance([a, b]) == pytest.approx(2.0)
+    # a bias leaves it unchanged (it is the spread, not the error)
+    assert metrics.seed_variance([r + 0.5 for r in renders]) == pytest.approx(
+        metrics.seed_variance(renders), rel=1e-12)
+
+
+def test_seed_variance_errors():
+    with pytest.raises(MetricError, match="at least 2 renders"):
+        metrics.seed_variance([const(2, 2, 1)])
+    with pytest.raises(MetricError, match="shapes differ"):
+        metrics.seed_variance([const(2, 2, 1), const(2, 3, 1)])
+    bad = const(2, 2, 1)
+    bad[1, 0, 2] = np.nan
+    with pytest.raises(MetricError, match="render 1 has 1 NaN"):
+        metrics.seed_variance([const(2, 2, 1), bad])

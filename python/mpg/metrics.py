@@ -127,6 +127,25 @@ def mape(img: Any, ref: Any, region: Region = None, eps: float = EPS,
     return float(np.mean(per_pixel))
 
 
+def seed_variance(images: Sequence[Any], region: Region = None) -> float:
+    """The MSE of one render of an unbiased integrator, without a reference.
+
+    For independent renders X_1..X_n of one estimator (seeds), the mean over
+    the region's pixels and channels of the unbiased sample variance
+    sum_i (X_i - mean)^2 / (n - 1) estimates E[(X - E X)^2], which is the MSE
+    against the truth when E X is the truth. It carries no reference noise,
+    so it can rank renders whose error is below a reference's floor; a bias
+    shows as an MSE against the reference well above it plus the floor."""
+    if len(images) < 2:
+        raise MetricError(f"a seed variance needs at least 2 renders, got {len(images)}")
+    xs = [_array(im, f"render {i}") for i, im in enumerate(images)]
+    if any(x.shape != xs[0].shape for x in xs):
+        raise MetricError("the renders' shapes differ: " + ", ".join(str(x.shape) for x in xs))
+    m = region_mask(xs[0].shape[:2], region)
+    a = np.stack([x[m] for x in xs]).astype(np.float64)
+    return float(np.mean(a.var(axis=0, ddof=1)))
+
+
 METRICS = {"mse": mse, "relmse": relmse, "mape": mape}
 
 

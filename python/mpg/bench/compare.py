@@ -60,6 +60,16 @@ def above_floor(summ: dict[str, Any], conv: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def seed_variances(images: list[np.ndarray], box) -> dict[str, Any] | None:
+    """Per region the seeds' sample variance (metrics.seed_variance): one
+    render's MSE for an unbiased integrator, free of the reference's noise.
+    None with fewer than 2 seeds."""
+    if len(images) < 2:
+        return None
+    return {"image": metrics.seed_variance(images),
+            "caustic": metrics.seed_variance(images, box) if box is not None else None}
+
+
 def skip_reason(spec: IntegratorSpec) -> str | None:
     from mpg.bench.runners import mitsuba_importable
 
@@ -105,6 +115,7 @@ def run(scenes: list[BenchScene], specs: list[IntegratorSpec], time: float, seed
         # B C A, ...): a drift of the machine's speed during the run (up to 1.3x
         # between runs here) falls on every method alike.
         runs: dict[str, list[dict[str, Any]]] = {spec.text: [] for spec in active}
+        images: dict[str, list[np.ndarray]] = {spec.text: [] for spec in active}
         firsts: dict[str, Any] = {}
         failed: dict[str, str] = {}
         for s in range(seeds):
@@ -124,6 +135,7 @@ def run(scenes: list[BenchScene], specs: list[IntegratorSpec], time: float, seed
                 rec = error_record(r, ref, box)
                 rec.update(seed=s, stats=r.stats)
                 runs[spec.text].append(rec)
+                images[spec.text].append(r.rgb)
                 log(f"[compare] {sc.label} {spec.text} seed {s}: {r.seconds:.2f} s, "
                     f"{r.spp} spp, relMSE {rec['metrics']['image']['relmse']:.4g}")
                 if s == 0:
@@ -134,6 +146,7 @@ def run(scenes: list[BenchScene], specs: list[IntegratorSpec], time: float, seed
                 continue
             summ = summarise(runs[spec.text])
             summ["mse_above_floor"] = above_floor(summ, srec["reference"]["convergence"])
+            summ["seed_variance"] = seed_variances(images[spec.text], box)
             srec["methods"].append({"integrator": spec.text, "runs": runs[spec.text], "summary": summ})
             m0 = runs[spec.text][0]["metrics"]
             label = f"relMSE {report.fmt(m0['image']['relmse'])}"
@@ -179,24 +192,29 @@ def _scene_md(sc: BenchScene, srec: dict[str, Any], png: str) -> str:
                  f"{report.fmt(c.get('mse_floor_caustic'))} caustic.\n")
     has_box = sc.caustic_box is not None
     header = ["integrator", "time (s)", "spp (mean)", "MSE", "relMSE", "MAPE",
-              "MSE − floor"]
+              "MSE − floor", "seed var."]
     if has_box:
-        header += ["MSE caustic", "relMSE caustic", "MAPE caustic", "MSE − floor caustic"]
+        header += ["MSE caustic", "relMSE caustic", "MAPE caustic", "MSE − floor caustic",
+                   "seed var. caustic"]
     rows = []
     for m in srec["methods"]:
         s = m["summary"]
         row = [m["integrator"], report.fmt_spread(s["seconds"]),
                report.fmt(round(s["spp"]["mean"]))]
         af = s.get("mse_above_floor") or {}
+        sv = s.get("seed_variance") or {}
         row += [report.fmt_spread(s["image"][k]) for k in METRIC_NAMES]
-        row.append(report.fmt(af.get("image")))
+        row += [report.fmt(af.get("image")), report.fmt(sv.get("image"))]
         if has_box:
             row += [report.fmt_spread(s["caustic"][k]) for k in METRIC_NAMES]
-            row.append(report.fmt(af.get("caustic")))
+            row += [report.fmt(af.get("caustic")), report.fmt(sv.get("caustic"))]
         rows.append(row)
     lines.append(report.md_table(header, rows))
     lines.append("\n\"MSE − floor\": the mean MSE less the reference's MSE floor, an unbiased "
-                 "estimate of the render's own MSE (negative: below the reference's noise).")
+                 "estimate of the render's own MSE (negative: below the reference's noise). "
+                 "\"seed var.\": the seeds' sample variance per pixel, averaged (metrics.seed_variance; "
+                 "two or more seeds): one render's MSE if the integrator is unbiased, with no "
+                 "reference noise in it.")
     for sk in srec["skipped"]:
         lines.append(f"\n*{sk['integrator']} skipped: {sk['reason']}*")
     lines.append(f"\n![{sc.label}]({png})\n")
