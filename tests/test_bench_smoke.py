@@ -168,6 +168,27 @@ def test_curves(env):
     tt = sc["time_to_target_image"]
     assert tt["target_relmse"] > 0 and tt["methods"]["path"]["seconds"] > 0
     assert "Time to relMSE" in text
+    for m in sc["methods"]:   # two seeds: each budget's seed variance
+        assert all(p["summary"]["seed_variance"]["image"] > 0 for p in m["points"])
+
+
+def test_curves_of_the_seeds_variance(env):
+    """--metric seed_var plots the seeds' variance (metrics.seed_variance):
+    the path tracer's falls with the budget (twice the time, about half the
+    variance; its estimate from 2 seeds x 24^2 x 3 values has a relative
+    spread of ~3.4 %, so a fall is over 10 sigma), and one seed is refused."""
+    out = env["dir"] / "curves_sv"
+    assert cli.main(["curves", "--scenes", env["scene"], "--param", "res=24", "--integrators", "path",
+                     "--times", "0.2", "0.8", "--seeds", "2", "--metric", "seed_var",
+                     "--cache", env["cache"], "--out", str(out)]) == 0
+    data, text = check_out(out, ["curves-tiny_res_24_.png"])
+    (m,) = data["scenes"][0]["methods"]
+    sv = [p["summary"]["seed_variance"]["image"] for p in m["points"]]
+    assert 0 < sv[1] < sv[0]
+    assert "seed_var @ 0.8 s" in text
+    assert cli.main(["curves", "--scenes", env["scene"], "--param", "res=24", "--integrators", "path",
+                     "--times", "0.2", "--seeds", "1", "--metric", "seed_var",
+                     "--cache", env["cache"], "--out", str(out)]) == 1
 
 
 def test_costs(env):

@@ -97,8 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
     cv.add_argument("--target-relmse", type=float,
                     help="relMSE whose time-to-reach is tabulated (default: per scene, the "
                     "highest final relMSE over the methods)")
-    cv.add_argument("--metric", default="relmse", choices=["mse", "relmse", "mape"],
-                    help="metric plotted (default relmse)")
+    cv.add_argument("--metric", default="relmse", choices=["mse", "relmse", "mape", "seed_var"],
+                    help="metric plotted (default relmse; seed_var: the seeds' variance, an unbiased "
+                    "method's MSE without the reference's noise, needs --seeds 2 or more)")
     _refopts(cv)
 
     co = sub.add_parser("costs", help="per-render statistics table (like MPG Table 2)")

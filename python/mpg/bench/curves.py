@@ -34,6 +34,11 @@ from mpg.bench.runners import BenchError, IntegratorSpec, log, run_timed
 from mpg.bench.scenes import BenchScene
 from mpg.errors import MPGError
 
+# --metric seed_var: the seeds' sample variance at each budget
+# (metrics.seed_variance), an unbiased method's MSE with no reference noise in
+# it, so the long budgets are not flattened by the reference's floor
+SEED_VAR = "seed_var"
+
 
 def time_to_target(seconds: list[float], errors: list[float], target: float) -> dict[str, Any]:
     """Time at which a (decreasing) error curve reaches `target`, log-log interpolated."""
@@ -67,8 +72,10 @@ def run(scenes: list[BenchScene], specs: list[IntegratorSpec], times: list[float
         raise BenchError(f"--times must be positive, got {times}")
     if seeds < 1:
         raise BenchError(f"--seeds must be at least 1, got {seeds}")
-    if metric not in METRIC_NAMES:
-        raise BenchError(f"--metric must be one of {', '.join(METRIC_NAMES)}")
+    if metric not in METRIC_NAMES + (SEED_VAR,):
+        raise BenchError(f"--metric must be one of {', '.join(METRIC_NAMES + (SEED_VAR,))}")
+    if metric == SEED_VAR and seeds < 2:
+        raise BenchError(f"--metric {SEED_VAR} needs --seeds 2 or more (it is the seeds' variance)")
     results: dict[str, Any] = {"command": report.command_line(argv), "times": times,
                                "seeds": seeds, "metric": metric, "scenes": []}
     md = [report.header("Error against time", argv),
@@ -90,12 +97,14 @@ def run(scenes: list[BenchScene], specs: list[IntegratorSpec], times: list[float
                 srec["skipped"].append({"integrator": spec.text, "reason": why})
                 continue
             per_time: list[list[dict[str, Any]]] = [[] for _ in times]
+            images: list[list[np.ndarray]] = [[] for _ in times]
             try:
                 for s in range(seeds):
                     for i, r in enumerate(run_timed(spec, sc, times, seed=s, threads=threads)):
                         rec = error_record(r, ref, box)
                         rec.update(seed=s, budget=times[i])
                         per_time[i].append(rec)
+                        images[i].append(r.rgb)
                         log(f"[curves] {sc.label} {spec.text} seed {s} budget {times[i]:g} s: "
                             f"{r.seconds:.2f} s, {r.spp} spp, "
                             f"relMSE {rec['metrics']['image']['relmse']:.4g}")
@@ -103,10 +112,10 @@ def run(scenes: list[BenchScene], specs: list[IntegratorSpec], times: list[float
                 log(f"mpg-bench: skipping {spec.text} on {sc.label}: {e}")
                 srec["skipped"].append({"integrator": spec.text, "reason": str(e)})
                 continue
-            from mpg.bench.compare import summarise
+            from mpg.bench.compare import seed_variances, summarise
 
-            points = [{"budget": t, "runs": runs, "summary": summarise(runs)}
-                      for t, runs in zip(times, per_time)]
+            points = [{"budget": t, "runs": runs, "summary": dict(summarise(runs), seed_variance=seed_variances(ims, box))}
+                      for t, runs, ims in zip(times, per_time, images)]
             srec["methods"].append({"integrator": spec.text, "points": points})
         _targets(srec, target_relmse)
         png = f"curves-{_safe(sc.label)}.png"
@@ -123,6 +132,9 @@ def _curve(m: dict[str, Any], region: str, metric: str):
     t = [p["summary"]["seconds"]["mean"] for p in m["points"]]
     if m["points"][0]["summary"][region] is None:
         return None
+    if metric == SEED_VAR:   # one number per budget: no band
+        mean = [p["summary"]["seed_variance"][region] for p in m["points"]]
+        return t, mean, [0.0] * len(mean)
     mean = [p["summary"][region][metric]["mean"] for p in m["points"]]
     std = [p["summary"][region][metric]["std"] for p in m["points"]]
     return t, mean, std
@@ -166,6 +178,12 @@ def _plot(path: str, sc: BenchScene, srec: dict[str, Any], metric: str) -> None:
     p.close(fig)
 
 
+def _cell(point: dict[str, Any], region: str, metric: str) -> str:
+    if metric == SEED_VAR:
+        return report.fmt((point["summary"].get("seed_variance") or {}).get(region))
+    return report.fmt_spread(point["summary"][region][metric])
+
+
 def _scene_md(sc: BenchScene, srec: dict[str, Any], png: str, metric: str) -> str:
     lines = [f"## {sc.label}\n", f"![{sc.label}]({png})\n"]
     has_box = sc.caustic_box is not None
@@ -173,13 +191,12 @@ def _scene_md(sc: BenchScene, srec: dict[str, Any], png: str, metric: str) -> st
     header = ["integrator"] + [f"{metric} @ {b:g} s" for b in budgets]
     rows = []
     for m in srec["methods"]:
-        rows.append([m["integrator"]] + [report.fmt_spread(p["summary"]["image"][metric])
-                                         for p in m["points"]])
+        rows.append([m["integrator"]] + [_cell(p, "image", metric) for p in m["points"]])
     lines.append("Whole image:\n")
     lines.append(report.md_table(header, rows))
     if has_box:
-        rows = [[m["integrator"]] + [report.fmt_spread(p["summary"]["caustic"][metric])
-                                     for p in m["points"]] for m in srec["methods"]]
+        rows = [[m["integrator"]] + [_cell(p, "caustic", metric) for p in m["points"]]
+                for m in srec["methods"]]
         lines.append("\nCaustic box:\n")
         lines.append(report.md_table(header, rows))
     for region in ("image", "caustic"):
