@@ -154,6 +154,7 @@ def _targets(srec: dict[str, Any], target: float | None) -> None:
 
 def _plot(path: str, sc: BenchScene, srec: dict[str, Any], metric: str) -> None:
     p = report.plt()
+    from matplotlib.ticker import NullFormatter
     regions = ["image"] + (["caustic"] if sc.caustic_box is not None else [])
     fig, axes = p.subplots(1, len(regions), figsize=(5.0 * len(regions), 4.0), squeeze=False)
     for ax, region in zip(axes[0], regions):
@@ -168,6 +169,13 @@ def _plot(path: str, sc: BenchScene, srec: dict[str, Any], metric: str) -> None:
         tt = srec.get(f"time_to_target_{region}")
         if tt and metric == "relmse":
             ax.axhline(tt["target_relmse"], color="grey", lw=0.8, ls="--")
+        # the budgets as the x ticks (a log axis over one or two decades
+        # otherwise labels its minor ticks on top of each other)
+        budgets = [p["budget"] for p in srec["methods"][0]["points"]] if srec["methods"] else []
+        if budgets:
+            ax.set_xticks(budgets)
+            ax.set_xticklabels([f"{b:g}" for b in budgets])
+            ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("wall time (s)")
         ax.set_ylabel(f"{metric} ({region})")
         ax.set_title(f"{sc.label}: {region}", fontsize=10)
