@@ -136,17 +136,20 @@ def test_shape_and_region_errors():
 def test_seed_variance_is_the_mse_of_unbiased_renders():
     """Renders = truth + independent noise of known variance: the seeds'
     variance estimates the noise's variance, and so each render's mean MSE
-    against the truth, with no reference in it. 3 renders of 3 x 64^2 values:
-    the estimate's relative standard deviation is sqrt(2 / (2 * 12288)) =
-    0.9 %, so 5 % is over 5 sigma."""
+    against the truth, with no reference in it. 3 renders of 3 x 96^2
+    values, half at sigma 0.1 and half at 0.3: a value's variance estimate
+    (ddof 1, 3 renders) has variance sigma^4, so the mean's relative
+    standard deviation is sqrt(mean(sigma^4) / 27648) / mean(sigma^2) =
+    0.77 % and 5 % is 6.5 sigma (the MSE's: 0.63 %); the left half alone,
+    0.1^2 over 13 824 values: 0.85 %, so 10 % is 11 sigma."""
     rng = np.random.default_rng(7)
-    truth = rng.uniform(0.0, 2.0, (64, 64, 3))
-    sigma = np.where(np.arange(64)[None, :, None] < 32, 0.1, 0.3) * np.ones_like(truth)
+    truth = rng.uniform(0.0, 2.0, (96, 96, 3))
+    sigma = np.where(np.arange(96)[None, :, None] < 48, 0.1, 0.3) * np.ones_like(truth)
     renders = [truth + sigma * rng.standard_normal(truth.shape) for _ in range(3)]
     expect = float(np.mean(sigma ** 2))
     assert metrics.seed_variance(renders) == pytest.approx(expect, rel=0.05)
     assert np.mean([mse(r, truth) for r in renders]) == pytest.approx(expect, rel=0.05)
-    # a region: the left half's noise alone (6 144 values: 1.8 %, 10 % is over 5 sigma)
+    # a region: the left half's noise alone
     assert metrics.seed_variance(renders, (0.0, 0.0, 0.5, 1.0)) == pytest.approx(0.01, rel=0.1)
     # two renders: half their squared difference, by hand on one pixel
     a, b = const(1, 1, 1.0), const(1, 1, 3.0)

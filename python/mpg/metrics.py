@@ -142,7 +142,7 @@ def seed_variance(images: Sequence[Any], region: Region = None) -> float:
     if any(x.shape != xs[0].shape for x in xs):
         raise MetricError("the renders' shapes differ: " + ", ".join(str(x.shape) for x in xs))
     m = region_mask(xs[0].shape[:2], region)
-    a = np.stack([x[m] for x in xs]).astype(np.float64)
+    a = np.stack([x[m] for x in xs])   # (float64: _array)
     return float(np.mean(a.var(axis=0, ddof=1)))
 
 

@@ -82,7 +82,9 @@ def run(scenes: list[BenchScene], specs: list[IntegratorSpec], times: list[float
           (f"Budgets {', '.join(f'{t:g}' for t in times)} s, {seeds} seed(s); curves are the "
            "mean over seeds, bands ± one sample standard deviation. Time to target: log-log "
            "interpolation on the mean relMSE curve (`*`: extrapolated with error ~ 1/t); the "
-           "default target is the first integrator's final relMSE.\n")]
+           "default target is the first integrator's final relMSE."
+           + (" seed_var: the seeds' variance at each budget, one number, no band."
+              if metric == SEED_VAR else "") + "\n")]
     for sc in scenes:
         ref_info = refmod.get_or_make(sc, cache, reference_time or max(10.0, 20.0 * times[-1]))
         ref, ref_var = refmod.load_reference(ref_info)
