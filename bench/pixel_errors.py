@@ -9,9 +9,11 @@ rate the pixel got (docs/results.md, "Splitting the pixels, and a floor on the
 rates").
 
     python bench/pixel_errors.py sphere --integrator mpg --time 30 --seed 3 --moments 169 60
+    python bench/pixel_errors.py emitter_size_003 --param res=128 --time 10 --seed 1
 
-Needs the scene's reference in the cache (mpg-bench reference). Writes
-bench/results/pixel_errors-<scene>-<integrator>-<seed>.json."""
+Needs the scene's reference in the cache (mpg-bench reference; with the
+same --param). Writes bench/results/pixel_errors-<scene>-<integrator>-<seed>.json,
+or --out."""
 
 from __future__ import annotations
 
@@ -25,16 +27,21 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
-def cached_reference(scene: str, tool: str):
-    """(bench scene, reference RGB) of `scene`'s cached reference, or None
-    after saying how to make it."""
+def cached_reference(scene: str, tool: str, params: dict[str, str] | None = None):
+    """(bench scene, reference RGB) of `scene`'s cached reference (with scene
+    parameters `params`, e.g. res), or None after saying how to make it."""
     from mpg.bench import reference as refmod
-    from mpg.bench.scenes import resolve_scene
+    from mpg.bench.scenes import BenchError, resolve_scene
 
-    sc = resolve_scene(scene)
+    try:
+        sc = resolve_scene(scene, params or {})
+    except BenchError as e:
+        print(f"{tool}: {e}", file=sys.stderr)
+        return None
     info = refmod.find_reference(sc)
     if info is None:
-        print(f"{tool}: no cached reference of {scene}; make it with mpg-bench reference", file=sys.stderr)
+        print(f"{tool}: no cached reference of {scene} {params or {}}; make it with mpg-bench reference",
+              file=sys.stderr)
         return None
     return sc, refmod.load_reference(info)[0]
 
@@ -65,9 +72,15 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--top", type=int, default=5, help="pixels to list")
     ap.add_argument("--moments", type=int, nargs=2, metavar=("X", "Y"))
+    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                    help="scene parameter, e.g. res=128 (repeatable)")
+    ap.add_argument("--out", help="results file (default bench/results/pixel_errors-<scene>-<integrator>-<seed>.json)")
     args = ap.parse_args()
+    if any("=" not in p for p in args.param):
+        ap.error("--param takes NAME=VALUE, e.g. res=128")
+    params = dict(p.split("=", 1) for p in args.param)
 
-    found = cached_reference(args.scene, "pixel_errors")
+    found = cached_reference(args.scene, "pixel_errors", params)
     if found is None:
         return 2
     sc, ref = found
@@ -85,7 +98,7 @@ def main() -> int:
     img = mpg.render(sc.load_mpg(), integ, time=args.time, seed=args.seed, progress=False)
     se = ((img.rgb.astype(float) - ref) ** 2).mean(axis=2)
     rel = se / (ref.mean(axis=2) ** 2 + 0.01)
-    out: dict = {"scene": args.scene, "integrator": args.integrator, "seed": args.seed,
+    out: dict = {"scene": args.scene, "params": params, "integrator": args.integrator, "seed": args.seed,
                  "time": args.time, "spp": img.spp, "mse": float(se.mean()), "relmse": float(rel.mean())}
     # the regions' shares of the error and their means against the reference's,
     # with the render's standard error of the mean (its per-pixel variance of
@@ -121,7 +134,8 @@ def main() -> int:
                           "chain_m2": float(_finite(acc.chain_m2)[y, x] / n),
                           "sample_variance": float(_sample_variance(acc.sum, acc.sum_sq, n)[y, x]),
                           "chain_cost_rate1": float(c1[y, x]), "rest_cost": float(c0[y, x])}
-    path = ROOT / "bench" / "results" / f"pixel_errors-{args.scene}-{name}-{args.seed}.json"
+    path = (pathlib.Path(args.out) if args.out else
+            ROOT / "bench" / "results" / f"pixel_errors-{args.scene}-{name}-{args.seed}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=1))
     print(json.dumps(out, indent=1))
