@@ -39,14 +39,13 @@ def main() -> int:
     from mpg import metrics
     render_mod = importlib.import_module("mpg.render")   # (mpg.render is also the function)
     from mpg.bench import reference as refmod
-    from pixel_errors import load_scene   # bench/, the script's own folder
+    from pixel_errors import add_param_option, load_scene, scene_params   # bench/, the script's own folder
 
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
     ap.add_argument("--time", type=float, default=20.0)
     ap.add_argument("--seeds", type=int, default=4)
-    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                    help="scene parameter, e.g. res=128 (repeatable)")
+    add_param_option(ap)
     ap.add_argument("--variants", nargs="+", required=True, metavar="JSON")
     ap.add_argument("--stats", nargs="+", default=[], metavar="KEY",
                     help="render stats to record and print per run (e.g. chain_rate_model_v spp_rendering)")
@@ -63,9 +62,7 @@ def main() -> int:
     if not all(isinstance(v, dict) and "type" not in v for v in variants):
         ap.error("each variant must be a JSON object of mpg parameters without 'type', "
                  "e.g. '{\"chain_rate_min\": 0.0625}'")
-    if any("=" not in p for p in args.param):
-        ap.error("--param takes NAME=VALUE, e.g. res=128")
-    params = dict(p.split("=", 1) for p in args.param)
+    params = scene_params(ap, args)
     for v in variants:
         try:
             render_mod.check_param_names("mpg", v)

@@ -78,9 +78,8 @@ def summarise(var_c: np.ndarray, names: tuple[str, ...], image_var: np.ndarray, 
 
 def main() -> int:
     import mpg
-    from mpg.bench.runners import BenchError, parse_integrator
     from mpg.render import CLASS_NAMES
-    from pixel_errors import load_scene   # bench/, the script's own folder
+    from pixel_errors import add_param_option, load_scene, mpg_integrator, scene_params   # bench/
 
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
@@ -89,25 +88,17 @@ def main() -> int:
     ap.add_argument("--spp", type=int, help="samples per pixel instead of --time")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--top", type=int, default=12, help="largest pixels to list")
-    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="scene parameter")
+    add_param_option(ap)
     ap.add_argument("--out", help="the JSON file (default: bench/results/error_classes-<scene>-<integrator>-<seed>.json)")
     args = ap.parse_args()
     if not args.time > 0:
         ap.error("--time must be > 0")
     if args.spp is not None and args.spp < 2:
         ap.error("--spp must be >= 2")
-    if any("=" not in p for p in args.param):
-        ap.error("--param takes NAME=VALUE, e.g. res=128")
-    loaded = load_scene(args.scene, dict(p.split("=", 1) for p in args.param), "error_classes")
+    loaded = load_scene(args.scene, scene_params(ap, args), "error_classes")
     if loaded is None:
         return 1
-    try:   # (as mpg-bench names them: NAME/key=value/...)
-        spec = parse_integrator(args.integrator)
-    except BenchError as e:
-        ap.error(f"--integrator: {e}")
-    if spec.backend != "mpg":
-        ap.error("--integrator: an mpg integrator (the classes are the core's)")
-    integ = dict(spec.params, type=spec.name)
+    integ = mpg_integrator(ap, args.integrator, " (the classes are the core's)")
     # (mpg: its final render records the classes, its training passes do not)
     limit = dict(spp=args.spp) if args.spp is not None else dict(time=args.time)
     try:

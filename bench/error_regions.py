@@ -29,22 +29,22 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 def main() -> int:
     import mpg
     from mpg.bench import reference as refmod
-    from pixel_errors import load_scene   # bench/, the script's own folder
+    from pixel_errors import add_param_option, load_scene, mpg_integrator, scene_params   # bench/
 
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
     ap.add_argument("--integrator", default="mpg", help="name, with parameters as in mpg-bench: mpg/delta_plain=false")
     ap.add_argument("--time", type=float, default=20.0)
     ap.add_argument("--seeds", type=int, default=2)
-    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="scene parameter, e.g. res=128")
+    add_param_option(ap)
     ap.add_argument("--thresholds", type=float, nargs="+", default=[1e-3, 1e-2],
                     help="reference variance (of its mean, per pixel, mean over RGB) above which a pixel counts")
     args = ap.parse_args()
-    if any("=" not in p for p in args.param):
-        ap.error("--param takes NAME=VALUE, e.g. res=128")
+    params = scene_params(ap, args)
+    integ = mpg_integrator(ap, args.integrator)
     if args.seeds < 1 or not args.time > 0:
         ap.error("--seeds must be >= 1 and --time > 0")
-    loaded = load_scene(args.scene, dict(p.split("=", 1) for p in args.param), "error_regions")
+    loaded = load_scene(args.scene, params, "error_regions")
     if loaded is None:
         return 1
     bs, sc = loaded
@@ -57,8 +57,6 @@ def main() -> int:
         print("error_regions: the reference has no variance channel", file=sys.stderr)
         return 1
     v = var.astype(float).mean(axis=2)
-    name, *kv = args.integrator.split("/")
-    integ = dict(type=name, **dict(p.split("=", 1) for p in kv))
     err = np.zeros(v.shape)
     kmap = bmap = None
     spp = []
@@ -85,7 +83,7 @@ def main() -> int:
             "branched_pixels": int((split & ~plain).sum()), "branched_above_floor": float(d[split & ~plain].sum() / n),
             "plain_pixels": int(plain.sum()), "plain_above_floor": float(d[plain].sum() / n),
             "unsplit_above_floor": float(d[~split].sum() / n)}
-    stem = f"error_regions-{pathlib.Path(args.scene).stem}-{name}"
+    stem = f"error_regions-{pathlib.Path(args.scene).stem}-{integ['type']}"
     res_dir = ROOT / "bench" / "results"
     res_dir.mkdir(parents=True, exist_ok=True)
     (res_dir / f"{stem}.json").write_text(json.dumps(out, indent=1))

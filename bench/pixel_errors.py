@@ -46,6 +46,34 @@ def cached_reference(scene: str, tool: str, params: dict[str, str] | None = None
     return sc, refmod.load_reference(info)[0]
 
 
+def add_param_option(ap: argparse.ArgumentParser) -> None:
+    """The bench scripts' repeatable --param NAME=VALUE (scene parameters)."""
+    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                    help="scene parameter, e.g. res=128 (repeatable)")
+
+
+def scene_params(ap: argparse.ArgumentParser, args) -> dict[str, str]:
+    """--param as a dict; a malformed one is the parser's error."""
+    if any("=" not in p for p in args.param):
+        ap.error("--param takes NAME=VALUE, e.g. res=128")
+    return dict(p.split("=", 1) for p in args.param)
+
+
+def mpg_integrator(ap: argparse.ArgumentParser, text: str, why: str = "") -> dict:
+    """An mpg integrator named as mpg-bench names it (NAME/key=value/...,
+    runners.parse_integrator) as mpg.render's dict; anything else is the
+    parser's error (`why`: what needs the core's integrator)."""
+    from mpg.bench.runners import BenchError, parse_integrator
+
+    try:
+        spec = parse_integrator(text)
+    except BenchError as e:
+        ap.error(f"--integrator: {e}")
+    if spec.backend != "mpg":
+        ap.error(f"--integrator: an mpg integrator{why}")
+    return dict(spec.params, type=spec.name)
+
+
 def load_scene(scene: str, params: dict[str, str], tool: str):
     """(bench scene, mpg scene) of a scene name or path with scene parameters,
     or None after printing why not."""
@@ -72,20 +100,16 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--top", type=int, default=5, help="pixels to list")
     ap.add_argument("--moments", type=int, nargs=2, metavar=("X", "Y"))
-    ap.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                    help="scene parameter, e.g. res=128 (repeatable)")
+    add_param_option(ap)
     ap.add_argument("--out", help="results file (default bench/results/pixel_errors-<scene>-<integrator>-<seed>.json)")
     args = ap.parse_args()
-    if any("=" not in p for p in args.param):
-        ap.error("--param takes NAME=VALUE, e.g. res=128")
-    params = dict(p.split("=", 1) for p in args.param)
+    params = scene_params(ap, args)
+    integ = mpg_integrator(ap, args.integrator)
 
     found = cached_reference(args.scene, "pixel_errors", params)
     if found is None:
         return 2
     sc, ref = found
-    name, *kv = args.integrator.split("/")
-    integ = dict(type=name, **dict(p.split("=", 1) for p in kv))
     seen: dict = {}
     learn = guiding.learn_rates
 
@@ -135,7 +159,7 @@ def main() -> int:
                           "sample_variance": float(_sample_variance(acc.sum, acc.sum_sq, n)[y, x]),
                           "chain_cost_rate1": float(c1[y, x]), "rest_cost": float(c0[y, x])}
     path = (pathlib.Path(args.out) if args.out else
-            ROOT / "bench" / "results" / f"pixel_errors-{args.scene}-{name}-{args.seed}.json")
+            ROOT / "bench" / "results" / f"pixel_errors-{args.scene}-{integ['type']}-{args.seed}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=1))
     print(json.dumps(out, indent=1))
