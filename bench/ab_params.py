@@ -39,7 +39,7 @@ def main() -> int:
     from mpg import metrics
     render_mod = importlib.import_module("mpg.render")   # (mpg.render is also the function)
     from mpg.bench import reference as refmod
-    from pixel_errors import add_param_option, load_scene, scene_params   # bench/, the script's own folder
+    from pixel_errors import add_param_option, load_with_reference, scene_params   # bench/, the script's own folder
 
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
@@ -68,15 +68,10 @@ def main() -> int:
             render_mod.check_param_names("mpg", v)
         except render_mod.RenderError as e:
             ap.error(f"{json.dumps(v)}: {e}")
-    loaded = load_scene(args.scene, params, "ab_params")
+    loaded = load_with_reference(args.scene, params, "ab_params")
     if loaded is None:
         return 1
-    bs, sc = loaded
-    info = refmod.find_reference(bs)
-    if info is None:
-        print(f"ab_params: no cached reference of {args.scene} {params}; make it with mpg-bench reference",
-              file=sys.stderr)
-        return 1
+    _, sc, info = loaded
     ref = refmod.load_reference(info)[0]
     floor = float(info["convergence"].get("mse_floor_image") or 0.0)
     command = shlex.join(["python", "bench/ab_params.py"] + sys.argv[1:])

@@ -29,7 +29,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 def main() -> int:
     import mpg
     from mpg.bench import reference as refmod
-    from pixel_errors import add_param_option, load_scene, mpg_integrator, scene_params   # bench/
+    from pixel_errors import add_param_option, load_with_reference, mpg_integrator, scene_params   # bench/
 
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
@@ -44,14 +44,10 @@ def main() -> int:
     integ = mpg_integrator(ap, args.integrator)
     if args.seeds < 1 or not args.time > 0:
         ap.error("--seeds must be >= 1 and --time > 0")
-    loaded = load_scene(args.scene, params, "error_regions")
+    loaded = load_with_reference(args.scene, params, "error_regions")
     if loaded is None:
         return 1
-    bs, sc = loaded
-    info = refmod.find_reference(bs)
-    if info is None:
-        print(f"error_regions: no cached reference of {args.scene}; make it with mpg-bench reference", file=sys.stderr)
-        return 1
+    _, sc, info = loaded
     ref, var = refmod.load_reference(info)
     if var is None:
         print("error_regions: the reference has no variance channel", file=sys.stderr)

@@ -88,6 +88,22 @@ def load_scene(scene: str, params: dict[str, str], tool: str):
         return None
 
 
+def load_with_reference(scene: str, params: dict[str, str], tool: str):
+    """(bench scene, mpg scene, cached reference's info) of a scene name or
+    path with scene parameters, or None after saying why not."""
+    from mpg.bench import reference as refmod
+
+    loaded = load_scene(scene, params, tool)
+    if loaded is None:
+        return None
+    info = refmod.find_reference(loaded[0])
+    if info is None:
+        print(f"{tool}: no cached reference of {scene} {params}; make it with mpg-bench reference",
+              file=sys.stderr)
+        return None
+    return (*loaded, info)
+
+
 def main() -> int:
     import mpg
     import mpg.guiding as guiding
