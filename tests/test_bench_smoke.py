@@ -16,7 +16,7 @@ import shutil
 import numpy as np
 import pytest
 
-from mpg.bench import cli, curves, reference, runners
+from mpg.bench import cli, curves, reference, report, runners
 from mpg.bench.scenes import BenchError
 
 HAS_MI = importlib.util.find_spec("mitsuba") is not None
@@ -201,6 +201,20 @@ def test_costs(env):
     for r in data["rows"]:
         assert r["stats"]["spp"] > 0 and r["stats"]["seconds"] > 0
     assert "–" in text     # path reports no guiding statistics
+
+
+def test_costs_mpg_spp_cell(env):
+    """The "training + rendering" cell: mpg's image holds its rendering
+    passes alone (the cell once printed spp - spp_training as the
+    rendering's, 127 + 164 for a render of 127 + 291)."""
+    out = env["dir"] / "costs-mpg"
+    assert cli.main(["costs", "--scenes", env["scene"], "--param", "res=24", "--integrators",
+                     "mpg", "--time", "0.6", "--out", str(out)]) == 0
+    data, text = check_out(out, ["costs.png"])
+    (row,) = data["rows"]
+    st = row["all_stats"]
+    assert st["spp_training"] > 0 and st["spp"] == st["spp_rendering"] > 0
+    assert f"| {report.fmt(st['spp_training'])} + {report.fmt(st['spp_rendering'])} |" in text
 
 
 def test_missing_mitsuba_is_skipped(env, monkeypatch):

@@ -4,7 +4,7 @@ Each integrator entry renders each scene once (seed 0) with the given budget;
 the table shows whatever of these statistics keys the image reports, "–" for the
 absent ones (documented in docs/results.md):
 
-    spp, spp_training        samples per pixel: total (training included) and training
+    spp, spp_training        samples per pixel: the image's (rendering) and training's
     seconds, seconds_training  wall time: total and in training
     seconds_guide            time querying the guiding distributions (STree query, sampling
                              n, tau and omega from a leaf; core timer guide_ns)
@@ -72,13 +72,16 @@ def derived(st: dict[str, Any]) -> dict[str, Any]:
 
 
 def _spp_cell(st: dict[str, Any]) -> str:
+    """"training + rendering" spp. An image's spp are its rendering passes'
+    alone (mpg's training passes are never splatted into it; the paper's
+    "n + m" form)."""
     spp = st.get("spp")
     if spp is None:
         return report.DASH
     tr = st.get("spp_training")
     if tr is None:
         return f"{report.DASH} + {report.fmt(int(spp))}"
-    return f"{report.fmt(int(tr))} + {report.fmt(int(spp) - int(tr))}"
+    return f"{report.fmt(int(tr))} + {report.fmt(int(spp))}"
 
 
 def run(scenes: list[BenchScene], specs: list[IntegratorSpec], time: float | None,
