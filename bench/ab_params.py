@@ -12,7 +12,8 @@ JSON, checks them and prints the MSE less the reference's floor per variant.
 
 Each variant is a JSON object of `mpg` parameters ('{}': the defaults).
 Prints MSE, MSE less the reference's floor (docs/results.md, "Metrics"),
-relMSE and spp per run and per variant (and the render stats --stats names,
+with 2+ seeds the seeds' variance (mpg.metrics.seed_variance: the MSE with
+no reference noise in it), relMSE and spp per run and per variant (and the render stats --stats names,
 per run: e.g. chain_rate_model_v chain_rate_model_c, the rates' model); needs the scene's reference in the
 cache (mpg-bench reference). Writes bench/results/ab_params-<scene>-<hash of
 the arguments>.json after every run (or --out FILE), so an interrupted run
@@ -82,13 +83,16 @@ def main() -> int:
         out_path = ROOT / "bench" / "results" / f"ab_params-{pathlib.Path(args.scene).stem}-{key[:10]}.json"
     out_path.parent.mkdir(parents=True, exist_ok=True)
     runs: list[list[dict]] = [[] for _ in variants]
+    images: list[list[np.ndarray]] = [[] for _ in variants]   # (for the seeds' variance)
 
     def summary() -> dict:
         out = {"command": command, "scene": args.scene, "params": params, "time": args.time,
                "mse_floor_image": floor, "variants": []}
-        for v, rs in zip(variants, runs):
+        for v, rs, ims in zip(variants, runs, images):
             m = float(np.mean([r["mse"] for r in rs])) if rs else float("nan")
+            sv = metrics.seed_variance(ims) if len(ims) >= 2 else None
             out["variants"].append({"variant": v, "runs": rs, "mse": m, "mse_above_floor": m - floor,
+                                    "seed_variance": sv,
                                     "relmse": float(np.mean([r["relmse"] for r in rs])) if rs else float("nan"),
                                     "spp": float(np.mean([r["spp"] for r in rs])) if rs else 0.0})
         return out
@@ -113,13 +117,15 @@ def main() -> int:
                     print(f"ab_params: no stat {', '.join(missing)} in this render (recorded as null)",
                           file=sys.stderr)
             runs[i].append(rec)
+            images[i].append(np.asarray(img.rgb, dtype=np.float32))
             extra = "".join(f" {k} {v:.4g}" if isinstance(v, float) else f" {k} {v}"
                             for k, v in rec.get("stats", {}).items())
             print(f"{args.scene} seed {seed} {json.dumps(variants[i])}: MSE {rec['mse']:.4g} "
                   f"relMSE {rec['relmse']:.3g} spp {rec['spp']}{extra}", flush=True)
             out_path.write_text(json.dumps(summary(), indent=2))
     for s in summary()["variants"]:
-        print(f"== {json.dumps(s['variant'])}: MSE {s['mse']:.4g} (less floor {s['mse_above_floor']:.4g}) "
+        sv = f" seed var. {s['seed_variance']:.4g}" if s["seed_variance"] is not None else ""
+        print(f"== {json.dumps(s['variant'])}: MSE {s['mse']:.4g} (less floor {s['mse_above_floor']:.4g}){sv} "
               f"relMSE {s['relmse']:.3g} spp {s['spp']:.0f}")
     print(f"wrote {out_path}")
     return 0
