@@ -21,6 +21,11 @@ counts in the rest.
 
     python bench/error_classes.py sphere --time 20 --seed 0
     python bench/error_classes.py double_slabs --integrator mpg/known_types=false --time 20
+    python bench/error_classes.py double_slabs --time 20 --seeds 3
+
+With --seeds N (2+) also each class's variance across the N renders (and
+the image's): the within-render variance counts the delta split's Sobol
+positions as independent samples and so overstates the *delta* class.
 
 Writes bench/results/error_classes-<scene>-<integrator>[-<param>...]-<seed>.json
 (the integrator's / and = as _), or --out."""
@@ -76,6 +81,54 @@ def summarise(var_c: np.ndarray, names: tuple[str, ...], image_var: np.ndarray, 
     return out
 
 
+# The classes summed where a seed's learned maps move light between them: a
+# pixel's chain light is the estimator's and the path tracer's shares
+# (chain, shared) in one seed and traced or handed off in another, so across
+# seeds those classes are anticorrelated and only their sum says what the
+# chain light at a separator costs; the photons take a share of it at a rate
+# learned per seed.
+GROUPS = {
+    "chain_light": ("chain", "shared", "traced", "handed", "unseen", "inactive", "unowned", "photons"),
+    "delta": ("delta", "glints"),
+    "other": ("other",),
+}
+
+
+def seed_summary(means: np.ndarray, names: tuple[str, ...]) -> dict:
+    """The classes' seeds' variance: each class's image (its share of the
+    pixel's mean over RGB) from independent renders (seeds x height x width
+    x classes), the image mean of the unbiased variance across the seeds
+    per class, and the same of their sum (the image's seeds' variance of the
+    RGB mean, covariances included). Unlike the
+    within-render variance this holds samples that are not independent
+    inside one render (the delta split's Sobol positions, stratified pixel
+    positions) at their true worth."""
+    if means.shape[0] < 2:
+        raise ValueError("a seeds' variance needs at least 2 renders")
+    per = {nm: float(np.mean(means[:, :, :, i].var(axis=0, ddof=1))) for i, nm in enumerate(names)}
+    s = sum(per.values())
+    total = means.sum(axis=3)
+    v_all = float(np.mean(total.var(axis=0, ddof=1)))
+    # what the image's variance loses if a class were exact: var(all) -
+    # var(all - class) = var(class) + 2 cov(class, rest). The path tracer's
+    # and an estimator's balance-weighted shares of one path are
+    # anticorrelated, so a class's own variance overstates what it costs.
+    drop = {nm: v_all - float(np.mean((total - means[:, :, :, i]).var(axis=0, ddof=1)))
+            for i, nm in enumerate(names)}
+    grouped, gdrop = {}, {}
+    for g, members in GROUPS.items():
+        part = means[:, :, :, [names.index(c) for c in members]].sum(axis=3)
+        grouped[g] = float(np.mean(part.var(axis=0, ddof=1)))
+        gdrop[g] = v_all - float(np.mean((total - part).var(axis=0, ddof=1)))
+    return {"seeds": int(means.shape[0]),
+            "class_seed_variance": per,
+            "class_seed_share": {nm: (v / s if s > 0 else 0.0) for nm, v in per.items()},
+            "class_seed_contribution": drop,
+            "group_seed_variance": grouped,
+            "group_seed_contribution": gdrop,
+            "image_seed_variance": v_all}
+
+
 def main() -> int:
     import mpg
     from mpg.render import CLASS_NAMES
@@ -87,6 +140,8 @@ def main() -> int:
     ap.add_argument("--time", type=float, default=20.0)
     ap.add_argument("--spp", type=int, help="samples per pixel instead of --time")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seeds", type=int, default=1,
+                    help="renders with seeds SEED.., SEED+N-1; with 2+ the classes' seeds' variance too")
     ap.add_argument("--top", type=int, default=12, help="largest pixels to list")
     add_param_option(ap)
     ap.add_argument("--out", help="the JSON file (default: bench/results/error_classes-<scene>-<integrator>-<seed>.json)")
@@ -95,26 +150,37 @@ def main() -> int:
         ap.error("--time must be > 0")
     if args.spp is not None and args.spp < 2:
         ap.error("--spp must be >= 2")
+    if args.seeds < 1:
+        ap.error("--seeds must be >= 1")
     loaded = load_scene(args.scene, scene_params(ap, args), "error_classes")
     if loaded is None:
         return 1
     integ = mpg_integrator(ap, args.integrator, " (the classes are the core's)")
     # (mpg: its final render records the classes, its training passes do not)
     limit = dict(spp=args.spp) if args.spp is not None else dict(time=args.time)
-    try:
-        img = mpg.render(loaded[1], integ, seed=args.seed, progress=False, record_classes=True, **limit)
-    except mpg.RenderError as e:
-        print(f"error_classes: {e}", file=sys.stderr)
-        return 1
-    if img.class_sum is None or img.spp < 2:
-        print("error_classes: fewer than 2 samples per pixel were rendered; give more --time", file=sys.stderr)
-        return 1
+    means = []   # per seed, each class's image (height x width x classes)
+    for seed in range(args.seed, args.seed + args.seeds):
+        try:
+            img = mpg.render(loaded[1], integ, seed=seed, progress=False, record_classes=True, **limit)
+        except mpg.RenderError as e:
+            print(f"error_classes: {e}", file=sys.stderr)
+            return 1
+        if img.class_sum is None or img.spp < 2:
+            print("error_classes: fewer than 2 samples per pixel were rendered; give more --time", file=sys.stderr)
+            return 1
+        if seed == args.seed:
+            first = img
+        if args.seeds > 1:
+            means.append(np.asarray(img.class_sum, dtype=float) / img.spp)
+    img = first   # (the within-render numbers are the first seed's)
     var_c = class_variances(img.class_sum, img.class_sum_sq, img.spp)
     out = {"command": "python bench/error_classes.py " + " ".join(sys.argv[1:]),
            "scene": args.scene, "integrator": args.integrator, "seed": args.seed,
            "time": None if args.spp is not None else args.time,
            "spp": img.spp, "classes": list(CLASS_NAMES)}
     out.update(summarise(var_c, CLASS_NAMES, img.variance.astype(float).mean(axis=2), args.top))
+    if means:
+        out.update(seed_summary(np.stack(means), CLASS_NAMES))
     # (a scene name, or a file's name without .xml; the integrator with its parameters)
     tag = "-".join([pathlib.Path(args.scene).stem, args.integrator.replace("/", "_").replace("=", "_")]
                    + [p.replace("=", "_") for p in args.param] + [str(args.seed)])

@@ -162,7 +162,7 @@ def test_the_error_classes_script_writes_its_summary(tmp_path):
     dest = tmp_path / "classes.json"
     out = subprocess.run([sys.executable, str(ROOT / "bench" / "error_classes.py"),
                           str(ROOT / "scenes" / "sphere_glass.xml"), "--param", "res=16", "--spp", "8",
-                          "--integrator", "sms_star", "--top", "400", "--out", str(dest)],
+                          "--integrator", "sms_star", "--top", "400", "--seeds", "2", "--out", str(dest)],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     d = json.loads(dest.read_text())
@@ -170,6 +170,10 @@ def test_the_error_classes_script_writes_its_summary(tmp_path):
     assert all(np.isfinite(v) and v >= 0 for v in d["class_variance"].values())
     assert sum(d["dominated_share_of_image_variance"].values()) <= 1.0 + 1e-9
     assert d["spp"] == 8
+    # --seeds 2: the classes' and groups' variance across the two renders
+    assert d["seeds"] == 2 and set(d["class_seed_variance"]) == set(CLASS_NAMES)
+    assert set(d["group_seed_variance"]) == {"chain_light", "delta", "other"}
+    assert np.isfinite(d["image_seed_variance"]) and d["image_seed_variance"] > 0
     bad = subprocess.run([sys.executable, str(ROOT / "bench" / "error_classes.py"), "sphere", "--integrator", "mpg/x"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--integrator" in bad.stderr
@@ -184,3 +188,36 @@ def test_the_delta_class_is_the_light_seen_in_the_glass(sphere):
     want = only.rgb.astype(float).mean(axis=2) * a.spp
     assert want.sum() > 0
     assert np.allclose(a.class_sum[..., C["delta"]], want, rtol=1e-4, atol=1e-3)
+
+
+def test_seed_summary_groups_anticorrelated_classes():
+    """error_classes.seed_summary: where a seed's maps move one light between
+    two classes (a pixel's chain light the estimator's in one seed, handed
+    off in another) each class's seeds' variance is large and their group's
+    is 0; a class's contribution (var(all) - var(all - class)) then counts
+    its covariance, and the groups name every class once."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        from error_classes import GROUPS, seed_summary
+    finally:
+        sys.path.remove(str(ROOT / "bench"))
+    assert sorted(c for g in GROUPS.values() for c in g) == sorted(CLASS_NAMES)
+    rng = np.random.default_rng(3)
+    s, h, w = 400, 4, 4
+    x = rng.normal(size=(s, h, w))
+    d = 0.5 * rng.normal(size=(s, h, w))
+    means = np.zeros((s, h, w, len(CLASS_NAMES)))
+    means[..., C["chain"]] = 1.0 + x
+    means[..., C["handed"]] = 2.0 - x
+    means[..., C["delta"]] = d
+    out = seed_summary(means, CLASS_NAMES)
+    vx, vd = float(np.mean(x.var(axis=0, ddof=1))), float(np.mean(d.var(axis=0, ddof=1)))
+    assert out["class_seed_variance"]["chain"] == pytest.approx(vx)
+    assert out["group_seed_variance"]["chain_light"] == pytest.approx(0.0, abs=1e-12)
+    assert out["image_seed_variance"] == pytest.approx(float(np.mean(d.var(axis=0, ddof=1))))
+    assert out["group_seed_contribution"]["delta"] == pytest.approx(vd)
+    assert out["group_seed_contribution"]["chain_light"] == pytest.approx(0.0, abs=1e-12)
+    # all - chain = 2 - x + d: var(all) - var(all - chain) = vd - (vx + vd) + (cross terms ~ 0)
+    assert out["class_seed_contribution"]["chain"] < -0.5 * vx
+    with pytest.raises(ValueError):
+        seed_summary(means[:1], CLASS_NAMES)
