@@ -25,7 +25,11 @@ counts in the rest.
 
 With --seeds N (2+) also each class's variance across the N renders (and
 the image's): the within-render variance counts the delta split's Sobol
-positions as independent samples and so overstates the *delta* class.
+positions as independent samples and so overstates the *delta* class. And
+with --ref-split V, the groups' part in the pixels where the cached
+reference's variance is above V (seen through the glass) and in the rest:
+
+    python bench/error_classes.py double_slabs --time 20 --seeds 4 --ref-split 1e-3
 
 Writes bench/results/error_classes-<scene>-<integrator>[-<param>...]-<seed>.json
 (the integrator's / and = as _), or --out."""
@@ -129,10 +133,24 @@ def seed_summary(means: np.ndarray, names: tuple[str, ...]) -> dict:
             "image_seed_variance": v_all}
 
 
+def split_by_mask(means: np.ndarray, names: tuple[str, ...], mask: np.ndarray, threshold: float) -> dict:
+    """The groups' seeds' variance summed over the pixels in `mask` and over
+    the rest, each divided by the image's pixel count (so the parts add up to
+    the image means of seed_summary's group_seed_variance)."""
+    npx = float(mask.size)
+    out = {"threshold": threshold, "pixels_above": int(mask.sum())}
+    for part, m in (("above", mask), ("below", ~mask)):
+        out[part] = {g: float(means[:, :, :, [names.index(c) for c in members]].sum(axis=3)
+                              .var(axis=0, ddof=1)[m].sum() / npx)
+                     for g, members in GROUPS.items()}
+        out[part]["image"] = float(means.sum(axis=3).var(axis=0, ddof=1)[m].sum() / npx)
+    return out
+
+
 def main() -> int:
     import mpg
     from mpg.render import CLASS_NAMES
-    from pixel_errors import add_param_option, load_scene, mpg_integrator, scene_params   # bench/
+    from pixel_errors import add_param_option, load_scene, load_with_reference, mpg_integrator, scene_params   # bench/
 
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
@@ -143,6 +161,10 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=1,
                     help="renders with seeds SEED.., SEED+N-1; with 2+ the classes' seeds' variance too")
     ap.add_argument("--top", type=int, default=12, help="largest pixels to list")
+    ap.add_argument("--ref-split", type=float, metavar="V",
+                    help="with --seeds 2+: also split the groups' seeds' variance between the pixels where "
+                         "the cached reference's variance (of its mean, mean over RGB) is above V and the "
+                         "rest (bench/error_regions.py's split: the pixels seen through the glass)")
     add_param_option(ap)
     ap.add_argument("--out", help="the JSON file (default: bench/results/error_classes-<scene>-<integrator>-<seed>.json)")
     args = ap.parse_args()
@@ -152,7 +174,21 @@ def main() -> int:
         ap.error("--spp must be >= 2")
     if args.seeds < 1:
         ap.error("--seeds must be >= 1")
-    loaded = load_scene(args.scene, scene_params(ap, args), "error_classes")
+    if args.ref_split is not None and args.seeds < 2:
+        ap.error("--ref-split needs --seeds 2 or more")
+    ref_var = None
+    if args.ref_split is not None:
+        from mpg.bench import reference as refmod
+        loaded = load_with_reference(args.scene, scene_params(ap, args), "error_classes")
+        if loaded is None:
+            return 1
+        ref_var = refmod.load_reference(loaded[2])[1]
+        if ref_var is None:
+            print("error_classes: the reference has no variance channel", file=sys.stderr)
+            return 1
+        loaded = loaded[:2]
+    else:
+        loaded = load_scene(args.scene, scene_params(ap, args), "error_classes")
     if loaded is None:
         return 1
     integ = mpg_integrator(ap, args.integrator, " (the classes are the core's)")
@@ -181,6 +217,13 @@ def main() -> int:
     out.update(summarise(var_c, CLASS_NAMES, img.variance.astype(float).mean(axis=2), args.top))
     if means:
         out.update(seed_summary(np.stack(means), CLASS_NAMES))
+        if ref_var is not None:
+            above = ref_var.astype(float).mean(axis=2) > args.ref_split
+            if above.shape != means[0].shape[:2]:
+                print(f"error_classes: the reference is {above.shape[1]}x{above.shape[0]}, the render "
+                      f"{means[0].shape[1]}x{means[0].shape[0]}", file=sys.stderr)
+                return 1
+            out["ref_split"] = split_by_mask(np.stack(means), CLASS_NAMES, above, args.ref_split)
     # (a scene name, or a file's name without .xml; the integrator with its parameters)
     tag = "-".join([pathlib.Path(args.scene).stem, args.integrator.replace("/", "_").replace("=", "_")]
                    + [p.replace("=", "_") for p in args.param] + [str(args.seed)])

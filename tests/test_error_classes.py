@@ -221,3 +221,23 @@ def test_seed_summary_groups_anticorrelated_classes():
     assert out["class_seed_contribution"]["chain"] < -0.5 * vx
     with pytest.raises(ValueError):
         seed_summary(means[:1], CLASS_NAMES)
+
+
+def test_split_by_mask_adds_up_to_the_groups():
+    """error_classes.split_by_mask: the groups' seeds' variance in the
+    masked pixels and in the rest add up to seed_summary's image means."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    try:
+        from error_classes import GROUPS, seed_summary, split_by_mask
+    finally:
+        sys.path.remove(str(ROOT / "bench"))
+    rng = np.random.default_rng(4)
+    means = rng.gamma(0.5, size=(5, 6, 7, len(CLASS_NAMES)))
+    mask = rng.random((6, 7)) < 0.3
+    whole = seed_summary(means, CLASS_NAMES)
+    parts = split_by_mask(means, CLASS_NAMES, mask, 1e-3)
+    assert parts["pixels_above"] == int(mask.sum())
+    for g in GROUPS:
+        assert parts["above"][g] + parts["below"][g] == pytest.approx(whole["group_seed_variance"][g])
+        assert parts["above"][g] > 0 and parts["below"][g] > 0
+    assert parts["above"]["image"] + parts["below"]["image"] == pytest.approx(whole["image_seed_variance"])
