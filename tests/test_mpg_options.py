@@ -1,5 +1,5 @@
 """mpg's options beside the default: photon initialisation (supplemental
-Sec. 2), product-sampling weights (MPG Eq. 14), and how integrator parameters
+Sec. 2), the photon guide, product-sampling weights (MPG Eq. 14), and how integrator parameters
 are checked. Unbiasedness by the same z-tests as tests/test_guiding.py
 (|z| < 5, p < 6e-7 per comparison) and by closed forms."""
 
@@ -79,6 +79,50 @@ def test_photons_from_a_point_light_reflect_once_in_the_mirror():
     assert np.allclose(a["dir"][far], to_img[far], atol=2e-3)
 
 
+def test_a_scaled_buffer_scales_the_weights_alone(scenes_dir):
+    """SubpathBuffer.scaled (the photon guide's samples put on the training
+    samples' scale): every weight times f, every other field as it was."""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
+    integ = _core.make_integrator(sc.core, "mpg", dict(record=True))
+    buf = integ.trace_photons(5_000, 2)
+    a, b = buf.arrays(), buf.scaled(37.5).arrays()
+    assert len(a["n"]) > 100
+    assert np.allclose(b["weight"], 37.5 * a["weight"], rtol=1e-6)
+    for k in ("xD", "xL", "dir", "n", "tau"):
+        assert np.array_equal(a[k], b[k])
+
+
+def test_the_photon_guide_joins_every_training_guide(scenes_dir):
+    """photon_guide (on by default): its photons' sub-path samples are traced
+    once before training and join the guide each iteration builds; 0 traces
+    none. With them the leaves hold more samples, so the STree splits more."""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
+    on = mpg.render(sc, "mpg", spp=24, seed=4, progress=False).stats
+    off = mpg.render(sc, {"type": "mpg", "photon_guide": 0}, spp=24, seed=4, progress=False).stats
+    assert on["photon_guide"] == 200_000 and on["photon_guide_samples"] > 1000
+    assert off["photon_guide"] == 0 and off["photon_guide_samples"] == 0 and off["seconds_photon_guide"] == 0
+    assert on["guide_leaves"] > off["guide_leaves"]
+    # no training (training_fraction 0): no photons either
+    none = mpg.render(sc, {"type": "mpg", "training_fraction": 0.0}, spp=4, seed=4, progress=False).stats
+    assert none["photon_guide_samples"] == 0
+
+
+def test_the_photon_guide_leaves_the_image_deterministic():
+    """The photon guide's scale is the mean weight of a training buffer whose
+    order depends on which thread ran which tile; taken in that order, its
+    last bits moved the guide and the image from run to run on 2 threads
+    (the mirror's line-search limit then came out 4 instead of the full
+    search in one run of three). The same seed and spp give one image on 1
+    and 2 threads, twice."""
+    sc = mpg.load_string(mirror_scene(32, 0.95))
+    imgs = [mpg.render(sc, integrator={"type": "mpg", "light_trace": 0}, spp=64, seed=1, threads=t,
+                       progress=False) for t in (1, 2, 2)]
+    assert imgs[0].stats["photon_guide_samples"] > 0
+    for b in imgs[1:]:
+        assert np.array_equal(imgs[0].rgb, b.rgb)
+        assert b.stats["subpath_samples"] == imgs[0].stats["subpath_samples"]
+
+
 def test_photons_need_chains(scenes_dir):
     """No chain emitter or caster: no photons are traced."""
     sc = mpg.load_string("""<scene version="3.0.0">
@@ -90,7 +134,7 @@ def test_photons_need_chains(scenes_dir):
 
 
 @pytest.mark.parametrize("params", [{"init": "photon"}, {"product": True},
-                                    {"init": "photon", "product": "true"}])
+                                    {"init": "photon", "product": "true"}, {"photon_guide": 0}])
 def test_mpg_options_are_unbiased_against_path_tracing(params, scenes_dir):
     """As test_guiding's unbiasedness test, with photon initialisation and
     product-sampling weights: |z| < 5 on the image and nine regions. 1024 spp:
@@ -130,7 +174,7 @@ def test_mpg_photon_init_matches_the_mirror_closed_form(params):
 
 
 @pytest.mark.parametrize("key,value", [("product", "maybe"), ("selective", "2x"), ("known_types", "2x"),
-                                       ("photons", "many"),
+                                       ("photons", "many"), ("photon_guide", -1), ("photon_guide", "many"),
                                        ("init", "camera"), ("photons", 0),
                                        ("training_guide_fraction", 1.0),
                                        ("training_guide_fraction", "half")])

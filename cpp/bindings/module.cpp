@@ -806,6 +806,14 @@ PYBIND11_MODULE(_core, m) {
   py::class_<SubpathBuffer, std::shared_ptr<SubpathBuffer>>(m, "SubpathBuffer")
       .def("__len__", [](const SubpathBuffer& b) { return b.v.size(); })
       .def_property_readonly("nbytes", [](const SubpathBuffer& b) { return b.v.size() * sizeof(SubpathSample); })
+      .def("scaled", [](const SubpathBuffer& b, float f) {
+        // A copy with every weight times f (mpg.guiding: the photon guide's
+        // samples put on the training samples' scale)
+        auto out = std::make_shared<SubpathBuffer>();
+        out->v = b.v;
+        for (auto& s : out->v) s.weight *= f;
+        return out;
+      })
       .def("arrays", [](const SubpathBuffer& b) {
         // The samples as numpy arrays (tests, inspection): xD, xL, dir (decoded), n, tau, weight.
         const ssize_t k = ssize_t(b.v.size());

@@ -117,6 +117,11 @@ TRACE_MIN_HITS = None
 # per sample (design-notes "Splitting the pixels"; docs/results.md, eleventh session)
 PIXEL_SPLIT = "mse"
 PIXEL_SPLIT_MAX_COST = 1.1
+# Photons whose sub-path samples join every training guide (photon_guide;
+# design-notes "Photons in every guide"; docs/results.md, twenty-eighth
+# session): the leaves then know the chain types the light sends, which the
+# estimator's own walks in training rarely find (a tiny light's)
+PHOTON_GUIDE = 200_000
 
 # Time of one tried chain vertex (a traced seed vertex or a line-search try's
 # reprojected one) in units of one path-tracer ray: bench/step_cost.py
@@ -244,6 +249,11 @@ def _learn_photon_rate(core, scene, params: dict, keys: list[str], guide, seed: 
     info["seconds_photon_pilot"] = _time.monotonic() - t
     info["photon_pilot"] = int(r["lt_photons"])
     return info
+
+
+def _order_free_mean(w: np.ndarray) -> float:
+    """The mean of `w` whatever its order (sorted, summed in double)."""
+    return float(np.sum(np.sort(np.asarray(w, dtype=np.float64))) / max(len(w), 1))
 
 
 def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
@@ -382,6 +392,13 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     params["step_halvings"] = -1 if auto_halvings else int(halvings)
     init = str(params.pop("init", "surface"))
     n_photons = int(params.pop("photons", 200_000))
+    n_photon_guide = params.pop("photon_guide", PHOTON_GUIDE)
+    try:
+        n_photon_guide = int(n_photon_guide)
+    except (TypeError, ValueError):
+        raise RenderError(f"photon_guide must be a photon count (0: off), got '{n_photon_guide}'") from None
+    if n_photon_guide < 0:
+        raise RenderError(f"photon_guide must be >= 0 (0: off), got {n_photon_guide}")
     if not 0.0 <= frac < 1.0:
         raise RenderError(f"training_fraction must be in [0, 1), got {frac}")
     if init not in ("surface", "photon"):
@@ -408,9 +425,32 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     except ValueError as e:
         raise RenderError(str(e)) from None
 
+    # photon_guide: photons traced once, before training, whose sub-path
+    # samples join every guide the training builds (design-notes "Photons in
+    # every guide"), their weights scaled to the mean weight of that
+    # iteration's samples
+    pguide = None
+    seconds_photon_guide = 0.0
+    if n_photon_guide > 0 and probe.chains_active and frac > 0.0:
+        tp = _time.monotonic()
+        pguide = probe.trace_photons(n_photon_guide, (seed * 0x9E3779B97F4A7C15 + 0x5EED) % 2**64)
+        seconds_photon_guide = _time.monotonic() - tp
+        if len(pguide) == 0:
+            pguide = None
+        else:
+            pguide_mean = _order_free_mean(pguide.arrays()["weight"])
+
     def build(buf):
         state = _core.GuidingState()
-        state.build_from([buf], bmin, bmax, c=c, epsilon=eps, threads=threads or 2, **structure_kw)
+        bufs = [buf]
+        if pguide is not None and len(buf) > 0:
+            # (any positive scale leaves the image unbiased: the guide only
+            # chooses seeds, and the estimator divides by the mixture it samples)
+            # (sorted, in double: the buffer's order depends on which thread
+            # ran which tile, and the scale must not, or the image would)
+            scale = _order_free_mean(buf.arrays()["weight"]) / pguide_mean
+            bufs.append(pguide.scaled(scale))
+        state.build_from(bufs, bmin, bmax, c=c, epsilon=eps, threads=threads or 2, **structure_kw)
         return state
 
     photon_samples = 0
@@ -685,6 +725,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["guide_fraction"] = float(params["guide_fraction"])
     st["training_guide_fraction"] = train_alpha
     st["photon_samples"] = photon_samples
+    st["photon_guide"] = n_photon_guide
+    st["photon_guide_samples"] = len(pguide) if pguide is not None else 0
+    st["seconds_photon_guide"] = seconds_photon_guide
     st["seconds_photons"] = seconds_photons
     st["guide_leaves"] = leaves
     st["guide_structure"] = structure_kw["structure"]
