@@ -31,7 +31,7 @@ reference's variance is above V (seen through the glass) and in the rest:
 
     python bench/error_classes.py double_slabs --time 20 --seeds 4 --ref-split 1e-3
 
-Writes bench/results/error_classes-<scene>-<integrator>[-<param>...]-<seed>.json
+Writes bench/results/error_classes-<scene>-<integrator>[-<param>...]-<seed>[-s<seeds>].json
 (the integrator's / and = as _), or --out."""
 
 from __future__ import annotations
@@ -103,7 +103,8 @@ def seed_summary(means: np.ndarray, names: tuple[str, ...]) -> dict:
     pixel's mean over RGB) from independent renders (seeds x height x width
     x classes), the image mean of the unbiased variance across the seeds
     per class, and the same of their sum (the image's seeds' variance of the
-    RGB mean, covariances included). Unlike the
+    RGB mean, covariances included: below mpg.metrics.seed_variance's mean
+    of the channels' variances where the channels are not fully correlated). Unlike the
     within-render variance this holds samples that are not independent
     inside one render (the delta split's Sobol positions, stratified pixel
     positions) at their true worth."""
@@ -226,7 +227,8 @@ def main() -> int:
             out["ref_split"] = split_by_mask(np.stack(means), CLASS_NAMES, above, args.ref_split)
     # (a scene name, or a file's name without .xml; the integrator with its parameters)
     tag = "-".join([pathlib.Path(args.scene).stem, args.integrator.replace("/", "_").replace("=", "_")]
-                   + [p.replace("=", "_") for p in args.param] + [str(args.seed)])
+                   + [p.replace("=", "_") for p in args.param] + [str(args.seed)]
+                   + ([f"s{args.seeds}"] if args.seeds > 1 else []))
     path = pathlib.Path(args.out) if args.out else ROOT / "bench" / "results" / f"error_classes-{tag}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=1))

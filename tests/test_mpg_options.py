@@ -102,9 +102,32 @@ def test_the_photon_guide_joins_every_training_guide(scenes_dir):
     assert on["photon_guide"] == 200_000 and on["photon_guide_samples"] > 1000
     assert off["photon_guide"] == 0 and off["photon_guide_samples"] == 0 and off["seconds_photon_guide"] == 0
     assert on["guide_leaves"] > off["guide_leaves"]
+    assert on["seconds_photon_guide"] > 0
+    assert on["guide_bytes"] == (on["subpath_samples"] + on["photon_guide_samples"]) * _core.SUBPATH_SAMPLE_BYTES
     # no training (training_fraction 0): no photons either
     none = mpg.render(sc, {"type": "mpg", "training_fraction": 0.0}, spp=4, seed=4, progress=False).stats
-    assert none["photon_guide_samples"] == 0
+    assert none["photon_guide_samples"] == 0 and none["seconds_photon_guide"] == 0
+    # init=photon: its first guide is its own photons' alone; the photon
+    # guide's join the training's guides
+    ini = mpg.render(sc, {"type": "mpg", "init": "photon", "photons": 5000}, spp=24, seed=4, progress=False).stats
+    assert ini["photon_samples"] > 0 and ini["photon_guide_samples"] == on["photon_guide_samples"]
+    # a scene without chains: the stats are there, and nothing was traced
+    diffuse = mpg.load_file(scenes_dir / "eval" / "diffuse_room.xml", res="8")
+    d = mpg.render(diffuse, "mpg", spp=2, seed=1, progress=False).stats
+    assert d["photon_guide_samples"] == 0 and d["seconds_photon_guide"] == 0 and d["photon_guide"] == 200_000
+
+
+def test_the_photon_guide_scale_does_not_depend_on_order():
+    """guiding._order_free_mean: the same bits for any order of the weights
+    (float32 summed in a shuffled order would not be)."""
+    from mpg.guiding import _order_free_mean
+    rng = np.random.default_rng(8)
+    w = (rng.lognormal(0.0, 4.0, 20_000)).astype(np.float32)
+    ref = _order_free_mean(w)
+    naive = {float(np.mean(rng.permutation(w))) for _ in range(20)}
+    assert len(naive) > 1   # (the order does move a plain mean's last bits)
+    for _ in range(20):
+        assert _order_free_mean(rng.permutation(w)) == ref
 
 
 def test_the_photon_guide_leaves_the_image_deterministic():
@@ -175,6 +198,7 @@ def test_mpg_photon_init_matches_the_mirror_closed_form(params):
 
 @pytest.mark.parametrize("key,value", [("product", "maybe"), ("selective", "2x"), ("known_types", "2x"),
                                        ("photons", "many"), ("photon_guide", -1), ("photon_guide", "many"),
+                                       ("photon_guide", True), ("photon_guide", 2.5),
                                        ("init", "camera"), ("photons", 0),
                                        ("training_guide_fraction", 1.0),
                                        ("training_guide_fraction", "half")])

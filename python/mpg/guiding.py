@@ -392,13 +392,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     params["step_halvings"] = -1 if auto_halvings else int(halvings)
     init = str(params.pop("init", "surface"))
     n_photons = int(params.pop("photons", 200_000))
-    n_photon_guide = params.pop("photon_guide", PHOTON_GUIDE)
-    try:
-        n_photon_guide = int(n_photon_guide)
-    except (TypeError, ValueError):
-        raise RenderError(f"photon_guide must be a photon count (0: off), got '{n_photon_guide}'") from None
-    if n_photon_guide < 0:
-        raise RenderError(f"photon_guide must be >= 0 (0: off), got {n_photon_guide}")
+    pg = _count_param("photon_guide", params.pop("photon_guide", PHOTON_GUIDE))
+    if pg != int(pg):
+        raise RenderError(f"photon_guide must be a whole number of photons (0: off), got {pg}")
+    n_photon_guide = int(pg)
     if not 0.0 <= frac < 1.0:
         raise RenderError(f"training_fraction must be in [0, 1), got {frac}")
     if init not in ("surface", "photon"):
@@ -425,30 +422,35 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     except ValueError as e:
         raise RenderError(str(e)) from None
 
-    # photon_guide: photons traced once, before training, whose sub-path
-    # samples join every guide the training builds (design-notes "Photons in
-    # every guide"), their weights scaled to the mean weight of that
-    # iteration's samples
-    pguide = None
-    seconds_photon_guide = 0.0
-    if n_photon_guide > 0 and probe.chains_active and frac > 0.0:
-        tp = _time.monotonic()
-        pguide = probe.trace_photons(n_photon_guide, (seed * 0x9E3779B97F4A7C15 + 0x5EED) % 2**64)
-        seconds_photon_guide = _time.monotonic() - tp
-        if len(pguide) == 0:
-            pguide = None
-        else:
-            pguide_mean = _order_free_mean(pguide.arrays()["weight"])
+    # photon_guide: photons traced once, when the first training iteration
+    # builds its guide (within the training's budget), whose sub-path samples
+    # join every guide the training builds (design-notes "Photons in every
+    # guide"), their weights scaled to the mean weight of that iteration's
+    # samples; not the photon initialisation's guide (init=photon: the
+    # initial photons alone)
+    pg_state: dict[str, Any] = {"buf": None, "traced": False, "mean": 0.0, "seconds": 0.0, "in_last": False}
 
-    def build(buf):
+    def photon_guide_buffer():
+        if not pg_state["traced"] and n_photon_guide > 0:
+            pg_state["traced"] = True
+            tp = _time.monotonic()
+            b = probe.trace_photons(n_photon_guide, (seed * 0x9E3779B97F4A7C15 + 0x5EED) % 2**64)
+            pg_state["seconds"] = _time.monotonic() - tp
+            if len(b) > 0:
+                pg_state["buf"], pg_state["mean"] = b, _order_free_mean(b.arrays()["weight"])
+        return pg_state["buf"]
+
+    def build(buf, photons: bool = True):
         state = _core.GuidingState()
         bufs = [buf]
-        if pguide is not None and len(buf) > 0:
+        pguide = photon_guide_buffer() if photons and len(buf) > 0 else None
+        pg_state["in_last"] = pguide is not None   # (the newest guide holds them)
+        if pguide is not None:
             # (any positive scale leaves the image unbiased: the guide only
             # chooses seeds, and the estimator divides by the mixture it samples)
             # (sorted, in double: the buffer's order depends on which thread
             # ran which tile, and the scale must not, or the image would)
-            scale = _order_free_mean(buf.arrays()["weight"]) / pguide_mean
+            scale = _order_free_mean(buf.arrays()["weight"]) / pg_state["mean"]
             bufs.append(pguide.scaled(scale))
         state.build_from(bufs, bmin, bmax, c=c, epsilon=eps, threads=threads or 2, **structure_kw)
         return state
@@ -506,13 +508,14 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         if init == "photon":
             # Initial distribution from photons (supplemental Sec. 2) instead of
             # the surface-uniform seeds alone; flux as the weight (Eq. 4).
+            tp0 = _time.monotonic()
             buf = probe.trace_photons(n_photons, seed)
             photon_samples = len(buf)
             if photon_samples > 0:
-                guide = build(buf)
+                guide = build(buf, photons=False)
                 build_seconds += guide.build_seconds
                 leaves = guide.num_leaves
-            seconds_photons = _time.monotonic() - t0
+            seconds_photons = _time.monotonic() - tp0
             if show:
                 sys.stderr.write(f"mpg: {n_photons} photons -> {photon_samples} sub-path samples, "
                                  f"{leaves} leaves, {seconds_photons:.2f} s\n")
@@ -726,13 +729,14 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["training_guide_fraction"] = train_alpha
     st["photon_samples"] = photon_samples
     st["photon_guide"] = n_photon_guide
-    st["photon_guide_samples"] = len(pguide) if pguide is not None else 0
-    st["seconds_photon_guide"] = seconds_photon_guide
+    # (the photons' samples in the final guide: 0 where no training iteration built one)
+    st["photon_guide_samples"] = len(pg_state["buf"]) if pg_state["in_last"] else 0
+    st["seconds_photon_guide"] = pg_state["seconds"]
     st["seconds_photons"] = seconds_photons
     st["guide_leaves"] = leaves
     st["guide_structure"] = structure_kw["structure"]
     st["stree_filter"] = structure_kw["filter"]
-    st["guide_bytes"] = samples_last * _core.SUBPATH_SAMPLE_BYTES
+    st["guide_bytes"] = (samples_last + st["photon_guide_samples"]) * _core.SUBPATH_SAMPLE_BYTES
     st["seconds"] = _time.monotonic() - t0
     # chain_estimates counts every estimate started, chain_inactive those that
     # selective activation then stopped
