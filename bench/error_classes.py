@@ -151,7 +151,8 @@ def split_by_mask(means: np.ndarray, names: tuple[str, ...], mask: np.ndarray, t
 def main() -> int:
     import mpg
     from mpg.render import CLASS_NAMES
-    from pixel_errors import add_param_option, load_scene, load_with_reference, mpg_integrator, scene_params   # bench/
+    from pixel_errors import (add_param_option, load_scene, load_with_reference, mpg_integrator,   # bench/
+                              reference_with_variance, scene_params)
 
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
@@ -179,15 +180,11 @@ def main() -> int:
         ap.error("--ref-split needs --seeds 2 or more")
     ref_var = None
     if args.ref_split is not None:
-        from mpg.bench import reference as refmod
         loaded = load_with_reference(args.scene, scene_params(ap, args), "error_classes")
-        if loaded is None:
+        found = None if loaded is None else reference_with_variance(loaded[2], "error_classes")
+        if found is None:
             return 1
-        ref_var = refmod.load_reference(loaded[2])[1]
-        if ref_var is None:
-            print("error_classes: the reference has no variance channel", file=sys.stderr)
-            return 1
-        loaded = loaded[:2]
+        ref_var = found[1]
     else:
         loaded = load_scene(args.scene, scene_params(ap, args), "error_classes")
     if loaded is None:

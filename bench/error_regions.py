@@ -28,8 +28,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 def main() -> int:
     import mpg
-    from mpg.bench import reference as refmod
-    from pixel_errors import add_param_option, load_with_reference, mpg_integrator, scene_params   # bench/
+    from pixel_errors import (add_param_option, load_with_reference, mpg_integrator,   # bench/
+                              reference_with_variance, scene_params)
 
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
@@ -48,10 +48,10 @@ def main() -> int:
     if loaded is None:
         return 1
     _, sc, info = loaded
-    ref, var = refmod.load_reference(info)
-    if var is None:
-        print("error_regions: the reference has no variance channel", file=sys.stderr)
+    found = reference_with_variance(info, "error_regions")
+    if found is None:
         return 1
+    ref, var = found
     v = var.astype(float).mean(axis=2)
     err = np.zeros(v.shape)
     kmap = bmap = None

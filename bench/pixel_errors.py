@@ -38,12 +38,32 @@ def cached_reference(scene: str, tool: str, params: dict[str, str] | None = None
     except BenchError as e:
         print(f"{tool}: {e}", file=sys.stderr)
         return None
-    info = refmod.find_reference(sc)
+    info = find_cached(sc, scene, params or {}, tool)
+    return None if info is None else (sc, refmod.load_reference(info)[0])
+
+
+def find_cached(bs, scene: str, params: dict[str, str], tool: str):
+    """The cached reference's info of bench scene `bs`, or None after saying
+    how to make it."""
+    from mpg.bench import reference as refmod
+
+    info = refmod.find_reference(bs)
     if info is None:
-        print(f"{tool}: no cached reference of {scene} {params or {}}; make it with mpg-bench reference",
+        print(f"{tool}: no cached reference of {scene} {params}; make it with mpg-bench reference",
               file=sys.stderr)
+    return info
+
+
+def reference_with_variance(info, tool: str):
+    """(reference RGB, its per-pixel variance of the mean) of a cached
+    reference's info, or None after saying it has no variance channel."""
+    from mpg.bench import reference as refmod
+
+    ref, var = refmod.load_reference(info)
+    if var is None:
+        print(f"{tool}: the reference has no variance channel", file=sys.stderr)
         return None
-    return sc, refmod.load_reference(info)[0]
+    return ref, var
 
 
 def add_param_option(ap: argparse.ArgumentParser) -> None:
@@ -91,17 +111,11 @@ def load_scene(scene: str, params: dict[str, str], tool: str):
 def load_with_reference(scene: str, params: dict[str, str], tool: str):
     """(bench scene, mpg scene, cached reference's info) of a scene name or
     path with scene parameters, or None after saying why not."""
-    from mpg.bench import reference as refmod
-
     loaded = load_scene(scene, params, tool)
     if loaded is None:
         return None
-    info = refmod.find_reference(loaded[0])
-    if info is None:
-        print(f"{tool}: no cached reference of {scene} {params}; make it with mpg-bench reference",
-              file=sys.stderr)
-        return None
-    return (*loaded, info)
+    info = find_cached(loaded[0], scene, params, tool)
+    return None if info is None else (*loaded, info)
 
 
 def main() -> int:
