@@ -157,7 +157,8 @@ def test_photons_need_chains(scenes_dir):
 
 
 @pytest.mark.parametrize("params", [{"init": "photon"}, {"product": True},
-                                    {"init": "photon", "product": "true"}, {"photon_guide": 0}])
+                                    {"init": "photon", "product": "true"}, {"photon_guide": 0},
+                                    {"lobe_anchor": "auto"}, {"lobe_anchor": 0.3}])
 def test_mpg_options_are_unbiased_against_path_tracing(params, scenes_dir):
     """As test_guiding's unbiasedness test, with photon initialisation and
     product-sampling weights: |z| < 5 on the image and nine regions. 1024 spp:
@@ -173,6 +174,8 @@ def test_mpg_options_are_unbiased_against_path_tracing(params, scenes_dir):
     st = img.stats
     if params.get("init") == "photon":
         assert st["init"] == "photon" and st["photon_samples"] > 0
+    if "lobe_anchor" in params:   # (the lobes the render drew from are anchored)
+        assert st["lobe_anchor"] == params["lobe_anchor"] and st["lobe_anchored_fraction"] > 0
     assert st["guided_trials"] > 0 and st["chain_contributions"] > 0
     assert st["rejected_samples"] == 0
     assert not any("ignores" in w for w in st["warnings"])
@@ -181,7 +184,7 @@ def test_mpg_options_are_unbiased_against_path_tracing(params, scenes_dir):
 
 
 @pytest.mark.parametrize("params", [{"init": "photon"}, {"init": "photon", "training_fraction": 0.0},
-                                    {"init": "photon", "known_types": True}])
+                                    {"init": "photon", "known_types": True}, {"lobe_anchor": "auto"}])
 def test_mpg_photon_init_matches_the_mirror_closed_form(params):
     """Point light seen through a mirror (a path tracer cannot render it):
     with the photon-built guide (and with it alone, no training) the image
@@ -201,7 +204,8 @@ def test_mpg_photon_init_matches_the_mirror_closed_form(params):
                                        ("photon_guide", True), ("photon_guide", 2.5),
                                        ("init", "camera"), ("photons", 0),
                                        ("training_guide_fraction", 1.0),
-                                       ("training_guide_fraction", "half")])
+                                       ("training_guide_fraction", "half"), ("lobe_anchor", -1),
+                                       ("lobe_anchor", "far"), ("lobe_anchor", True), ("lobe_anchor", "inf")])
 def test_bad_mpg_parameters_are_named(key, value, scenes_dir):
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="8")
     with pytest.raises(RenderError, match=key):

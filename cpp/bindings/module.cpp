@@ -225,7 +225,7 @@ std::shared_ptr<std::vector<float>> count_map(const py::object& o, const Camera&
 WalkConfig walk_config(const py::dict& p);
 
 GuideConfig guide_config(float c, float epsilon, int max_depth, int threads, const std::string& filter,
-                         int threshold, const std::string& structure, int knn_k) {
+                         int threshold, const std::string& structure, int knn_k, float anchor) {
   GuideConfig cfg;
   cfg.stree.c = c;
   cfg.stree.epsilon = epsilon;
@@ -235,6 +235,7 @@ GuideConfig guide_config(float c, float epsilon, int max_depth, int threads, con
   cfg.stree.threshold = threshold;
   cfg.structure = parse_guide_structure(structure);
   cfg.knn_k = knn_k;
+  cfg.anchor = anchor;
   return cfg;  // ranges are checked by GuidingState::build
 }
 
@@ -837,38 +838,39 @@ PYBIND11_MODULE(_core, m) {
       });
 
   m.def("check_guide_config", [](float c, float epsilon, const std::string& filter, int threshold,
-                                  const std::string& structure, int knn_k) {
-    validate(guide_config(c, epsilon, 36, 1, filter, threshold, structure, knn_k));
+                                  const std::string& structure, int knn_k, float anchor) {
+    validate(guide_config(c, epsilon, 36, 1, filter, threshold, structure, knn_k, anchor));
   }, py::arg("c") = 1.f, py::arg("epsilon") = 0.1f, py::arg("filter") = "nearest", py::arg("threshold") = 0,
-     py::arg("structure") = "stree", py::arg("knn_k") = 0,
+     py::arg("structure") = "stree", py::arg("knn_k") = 0, py::arg("anchor") = 0.f,
      "Raise ValueError naming the parameter when GuidingState.build would reject these options.");
 
   py::class_<GuidingState, std::shared_ptr<GuidingState>>(m, "GuidingState")
       .def(py::init<>())
       .def("build_from", [](GuidingState& g, const std::vector<std::shared_ptr<SubpathBuffer>>& bufs,
                             py::object bmin, py::object bmax, float c, float epsilon, int max_depth, int threads,
-                            const std::string& filter, int threshold, const std::string& structure, int knn_k) {
+                            const std::string& filter, int threshold, const std::string& structure, int knn_k, float anchor) {
         std::vector<SubpathSample> all;
         size_t total = 0;
         for (const auto& b : bufs) total += b->v.size();
         all.reserve(total);
         for (const auto& b : bufs) all.insert(all.end(), b->v.begin(), b->v.end());
-        const GuideConfig cfg = guide_config(c, epsilon, max_depth, threads, filter, threshold, structure, knn_k);
+        const GuideConfig cfg = guide_config(c, epsilon, max_depth, threads, filter, threshold, structure, knn_k, anchor);
         const Vec3 lo = vec3(bmin), hi = vec3(bmax);
         py::gil_scoped_release nogil;
         g.build(all, lo, hi, cfg);
         return all.size();
       }, py::arg("buffers"), py::arg("bmin"), py::arg("bmax"), py::arg("c") = 1.f, py::arg("epsilon") = 0.1f,
          py::arg("max_depth") = 36, py::arg("threads") = 2, py::arg("filter") = "nearest", py::arg("threshold") = 0,
-         py::arg("structure") = "stree", py::arg("knn_k") = 0,
+         py::arg("structure") = "stree", py::arg("knn_k") = 0, py::arg("anchor") = 0.f,
          "Build from training buffers. filter: nearest | stochastic | none (stree_filter); threshold: a fixed "
          "split threshold, 0 = c sqrt(|S|) (stree_threshold); structure: stree | knn (guide_structure); "
-         "knn_k: neighbours per kNN query, 0 = ceil(c sqrt(|S|)).")
+         "knn_k: neighbours per kNN query, 0 = ceil(c sqrt(|S|)); anchor: lobes anchored at x_D + omega_D * "
+         "anchor * |x_L - x_D| and aimed from the query's x_D, 0 = centred on omega_D (lobe_anchor).")
       .def("build", [](GuidingState& g, const FArray& xD, const FArray& xL, const FArray& dirs,
                        py::array_t<int, py::array::c_style | py::array::forcecast> n,
                        py::array_t<uint16_t, py::array::c_style | py::array::forcecast> tau, const FArray& weight,
                        py::object bmin, py::object bmax, float c, float epsilon, int max_depth, int threads,
-                       const std::string& filter, int threshold, const std::string& structure, int knn_k) {
+                       const std::string& filter, int threshold, const std::string& structure, int knn_k, float anchor) {
         const auto pd = rows3(xD, "xD"), pl = rows3(xL, "xL"), dd = rows3(dirs, "dirs");
         const size_t N = pd.size();
         if (pl.size() != N || dd.size() != N || size_t(n.size()) != N || size_t(tau.size()) != N ||
@@ -885,14 +887,14 @@ PYBIND11_MODULE(_core, m) {
           x.weight = weight.data()[i];
           x.flags = 0;
         }
-        const GuideConfig cfg = guide_config(c, epsilon, max_depth, threads, filter, threshold, structure, knn_k);
+        const GuideConfig cfg = guide_config(c, epsilon, max_depth, threads, filter, threshold, structure, knn_k, anchor);
         const Vec3 lo = vec3(bmin), hi = vec3(bmax);  // with the GIL held
         py::gil_scoped_release nogil;
         g.build(s, lo, hi, cfg);
       }, py::arg("xD"), py::arg("xL"), py::arg("dirs"), py::arg("n"), py::arg("tau"), py::arg("weight"),
          py::arg("bmin"), py::arg("bmax"), py::arg("c") = 1.f, py::arg("epsilon") = 0.1f,
          py::arg("max_depth") = 36, py::arg("threads") = 2, py::arg("filter") = "nearest", py::arg("threshold") = 0,
-         py::arg("structure") = "stree", py::arg("knn_k") = 0)
+         py::arg("structure") = "stree", py::arg("knn_k") = 0, py::arg("anchor") = 0.f)
       .def_property_readonly("num_leaves", [](const GuidingState& g) { return g.tree().num_leaves(); })
       .def_property_readonly("num_nodes", [](const GuidingState& g) { return g.tree().num_nodes(); })
       .def_property_readonly("samples_stored", [](const GuidingState& g) { return g.num_samples_stored(); })
@@ -958,24 +960,31 @@ PYBIND11_MODULE(_core, m) {
       .def("normalise", [](const GuidingState& g, py::object xD, py::object xL) {
         float q[6]; g.normalise(vec3(xD), vec3(xL), q); return std::vector<float>(q, q + 6); })
       .def("pmf_n", [](const GuidingState& g, int leaf, int n) { return g.distribution(leaf).pmf_n(n); })
+      .def("leaf_anchor", [](const GuidingState& g, int leaf) { return g.distribution(leaf).anchor(); },
+           "The anchor leaf's lobes use (0: centred on their directions; lobe_anchor)")
+      .def("leaf_has_lobes", [](const GuidingState& g, int leaf) { return !g.distribution(leaf).empty(); })
       .def("pmf_tau", [](const GuidingState& g, int leaf, int n, uint16_t tau) { return g.distribution(leaf).pmf_tau(n, tau); })
-      .def("sample_dir", [](const GuidingState& g, int leaf, int n, uint16_t tau, const FArray& u) {
+      .def("sample_dir", [](const GuidingState& g, int leaf, int n, uint16_t tau, const FArray& u, py::object xD) {
         if (u.ndim() != 2 || u.shape(1) != 3) throw std::invalid_argument("u must have shape (N, 3)");
         const ChainDistribution& d = g.distribution(leaf);
+        const Vec3 p = vec3(xD);
         FArray out(std::vector<ssize_t>{u.shape(0), 3});
         for (ssize_t i = 0; i < u.shape(0); ++i) {
           Vec3 w(0.f);
-          if (!d.sample_dir(n, tau, u.at(i, 0), Vec2(u.at(i, 1), u.at(i, 2)), w)) w = Vec3(0.f);
+          if (!d.sample_dir(n, tau, u.at(i, 0), Vec2(u.at(i, 1), u.at(i, 2)), p, w)) w = Vec3(0.f);
           out.mutable_at(i, 0) = w.x; out.mutable_at(i, 1) = w.y; out.mutable_at(i, 2) = w.z;
         }
         return out;
-      })
-      .def("pdf_dir", [](const GuidingState& g, int leaf, int n, uint16_t tau, const FArray& dirs) {
+      }, py::arg("leaf"), py::arg("n"), py::arg("tau"), py::arg("u"), py::arg("xD") = py::make_tuple(0.f, 0.f, 0.f),
+         "Directions from leaf's lobes of (n, tau) for u (N x 3: lobe, then the vMF pair), seen from xD "
+         "(anchored lobes aim from it; others ignore it).")
+      .def("pdf_dir", [](const GuidingState& g, int leaf, int n, uint16_t tau, const FArray& dirs, py::object xD) {
         const auto d = rows3(dirs, "dirs");
+        const Vec3 p = vec3(xD);
         DArray out(std::vector<ssize_t>{ssize_t(d.size())});
-        for (size_t i = 0; i < d.size(); ++i) out.mutable_data()[i] = g.distribution(leaf).pdf_dir(n, tau, d[i]);
+        for (size_t i = 0; i < d.size(); ++i) out.mutable_data()[i] = g.distribution(leaf).pdf_dir(n, tau, p, d[i]);
         return out;
-      });
+      }, py::arg("leaf"), py::arg("n"), py::arg("tau"), py::arg("dirs"), py::arg("xD") = py::make_tuple(0.f, 0.f, 0.f));
   m.attr("SUBPATH_SAMPLE_BYTES") = sizeof(SubpathSample);
   m.def("warp_sample", &warp_sample, py::arg("name"), py::arg("u"), py::arg("param") = 0.f);
   // DiscreteDistribution::sample on weights for each u: (index, rescaled u) (tests).

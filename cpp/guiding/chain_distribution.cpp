@@ -94,7 +94,8 @@ static void build_alias(const DiscreteDistribution& dist, const std::vector<Vec3
   // What is left holds (up to rounding) exactly its own mass: q = 1.
 }
 
-void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uint32_t* idx, size_t nidx) {
+void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uint32_t* idx, size_t nidx,
+                              float anchor) {
   // Group the samples by (n, tau) in their given order: a small flat table of
   // group keys (a leaf rarely has more than a few dozen types).
   struct Group { uint32_t key; uint32_t count = 0; float weight = 0.f; };
@@ -169,11 +170,75 @@ void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uin
     lobes[g].mu.reserve(groups[g].count);
     lobes[g].weight.reserve(groups[g].count);
   }
-  for (size_t i = 0; i < acc.size(); ++i) {
-    Scratch& S = lobes[gid[i]];
-    S.mu.push_back(oct_decode(Vec2(acc[i]->dir[0], acc[i]->dir[1])));
-    S.weight.push_back(acc[i]->weight);
+  // Anchored lobes: the anchors, and the directions to them from the
+  // samples' mean x_D, from which the footprints sigma_i are measured
+  // (the leaf's parallax taken out, as the query sees them). fill(a) sets
+  // both for anchor a (0: the directions themselves).
+  std::vector<std::vector<Vec3>> anchors(groups.size());
+  Vec3 centroid(0.f);
+  if (anchor != 0.f && !acc.empty()) {
+    glm::dvec3 sum(0.0);
+    for (const SubpathSample* s : acc) sum += glm::dvec3(s->pD());
+    centroid = Vec3(sum / double(acc.size()));
   }
+  auto fill = [&](float a) {
+    for (size_t g = 0; g < groups.size(); ++g) {
+      lobes[g].mu.clear();
+      lobes[g].weight.clear();
+      anchors[g].clear();
+    }
+    for (size_t i = 0; i < acc.size(); ++i) {
+      Scratch& S = lobes[gid[i]];
+      const Vec3 mu = oct_decode(Vec2(acc[i]->dir[0], acc[i]->dir[1]));
+      if (a > 0.f) {
+        const Vec3 pd = acc[i]->pD();
+        const Vec3 A = pd + mu * (a * glm::length(acc[i]->pL() - pd));
+        anchors[gid[i]].push_back(A);
+        const Vec3 d = A - centroid;
+        const float l2 = glm::dot(d, d);
+        S.mu.push_back(l2 > 1e-24f && std::isfinite(l2) ? d / std::sqrt(l2) : mu);
+      } else {
+        S.mu.push_back(mu);
+      }
+      S.weight.push_back(acc[i]->weight);
+    }
+  };
+  float a_used = anchor;
+  if (anchor < 0.f) {
+    // kAutoAnchor: per leaf the candidate whose lobes are tightest seen from
+    // the leaf's mean x_D, by the mean log sigma_i over its samples (a
+    // leave-one-out likelihood of each direction under its nearest
+    // neighbour's lobe, -2 log sigma + const): the parallax that lines the
+    // samples' directions up. Ties keep the unanchored lobes.
+    static constexpr float kCandidates[] = {0.f, 0.1f, 0.3f, 1.f, 3.f};
+    double best = kInf;
+    a_used = 0.f;
+    std::vector<float> sg;
+    for (float a : kCandidates) {
+      fill(a);
+      double sum = 0.0;
+      size_t cnt = 0;
+      for (size_t g = 0; g < groups.size(); ++g) {
+        const size_t m = lobes[g].mu.size();
+        sg.resize(m);
+        nearest_distances(lobes[g].mu.data(), m, sg.data());
+        for (size_t i = 0; i < m; ++i)
+          if (std::isfinite(sg[i])) {
+            sum += std::log(double(std::max(sg[i], 1e-4f)));   // (kMaxKappa's floor on sigma)
+            ++cnt;
+          }
+      }
+      if (cnt == 0) break;   // lone samples only: nothing to line up
+      const double score = sum / double(cnt);
+      if (score < best) {
+        best = score;
+        a_used = a;
+      }
+    }
+  }
+  anchored_ = a_used > 0.f;
+  anchor_ = a_used;
+  fill(a_used);
   lobes_.clear();
   lobe_pmf_.clear();
   lobes_.reserve(acc.size());
@@ -194,7 +259,7 @@ void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uin
     if (m == 0 || dist.empty()) continue;  // (not reached: weights are > 0) count 0, never drawn
     t.count = uint32_t(m);
     lobes_.resize(lobes_.size() + m);
-    build_alias(dist, S.mu, S.kappa, lobes_.data() + t.first);
+    build_alias(dist, anchored_ ? anchors[type_group[ti]] : S.mu, S.kappa, lobes_.data() + t.first);
     for (size_t i = 0; i < m; ++i) lobe_pmf_.push_back(dist.pmf(i));
   }
 }
@@ -226,7 +291,7 @@ float ChainDistribution::pmf_tau(int n, uint16_t tau) const {
   return t < 0 ? 0.f : types_[size_t(t)].pmf;
 }
 
-bool ChainDistribution::sample_dir_of(int t, double u_lobe, const Vec2& u, Vec3& dir) const {
+bool ChainDistribution::sample_dir_of(int t, double u_lobe, const Vec2& u, const Vec3& xD, Vec3& dir) const {
   const Type& ty = types_[size_t(t)];
   if (ty.count == 0) return false;
   // the alias table's bin from u_lobe, and the fraction within it for q
@@ -237,16 +302,17 @@ bool ChainDistribution::sample_dir_of(int t, double u_lobe, const Vec2& u, Vec3&
   const LobeEntry* e = &L[b];
   if (!(x - double(b) < double(e->q))) e = &L[e->alias];
   const Vec3 local = warp::square_to_vmf(u, e->kappa);
-  dir = Frame(e->mu).to_world(local);
+  dir = Frame(centre(*e, xD)).to_world(local);
   return true;
 }
 
-bool ChainDistribution::sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, Vec3& dir) const {
+bool ChainDistribution::sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, const Vec3& xD,
+                                   Vec3& dir) const {
   const int t = find_type(n, tau);
-  return t >= 0 && sample_dir_of(t, u_lobe, u, dir);
+  return t >= 0 && sample_dir_of(t, u_lobe, u, xD, dir);
 }
 
-float ChainDistribution::pdf_dir(int n, uint16_t tau, const Vec3& dir) const {
+float ChainDistribution::pdf_dir(int n, uint16_t tau, const Vec3& xD, const Vec3& dir) const {
   const int t = find_type(n, tau);
   if (t < 0) return 0.f;
   const Type& ty = types_[size_t(t)];
@@ -255,7 +321,7 @@ float ChainDistribution::pdf_dir(int n, uint16_t tau, const Vec3& dir) const {
     // A lobe whose exponent is below -40 adds less than e^-40 of its peak: left
     // out (the guided trace evaluates this for every path it shares, over all
     // of a leaf's lobes; the skip makes most of them a dot product).
-    const double c = double(glm::dot(lobes_[i].mu, dir));
+    const double c = double(glm::dot(centre(lobes_[i], xD), dir));
     const double k = double(lobes_[i].kappa);
     if (k * (1.0 - std::min(c, 1.0)) > 40.0) continue;
     p += double(lobe_pmf_[i]) * warp::vmf_pdf_cos(c, k);

@@ -24,8 +24,22 @@ class ChainDistribution {
   // leaf's unfiltered samples and its filtered copies); the result depends on
   // their order only through floating-point rounding of the sums, so callers
   // pass a canonical order.
-  void build(SampleSpan a, const SubpathSample* base = nullptr, const uint32_t* idx = nullptr, size_t nidx = 0);
-  void build(const std::vector<SubpathSample>& samples) { build(SampleSpan{samples.data(), samples.size()}); }
+  // anchor > 0: each lobe is anchored at a point, A_i = x_D,i + omega_D,i *
+  // anchor * |x_L,i - x_D,i| (anchor 1: at the distance of the sample's light
+  // point), and its centre seen from the query's x_D is normalize(A_i - x_D):
+  // the direction from another x_D of the leaf corrected for the parallax of
+  // that point (GuideConfig::anchor). 0: the lobe's centre is omega_D,i itself.
+  void build(SampleSpan a, const SubpathSample* base = nullptr, const uint32_t* idx = nullptr, size_t nidx = 0,
+             float anchor = 0.f);
+  void build(const std::vector<SubpathSample>& samples, float anchor = 0.f) {
+    build(SampleSpan{samples.data(), samples.size()}, nullptr, nullptr, 0, anchor);
+  }
+  // anchor < 0 (kAutoAnchor): each leaf picks its anchor among 0 (off), 0.1,
+  // 0.3, 1 and 3, the one whose lobes are tightest seen from the samples'
+  // mean x_D (chain_distribution.cpp).
+  static constexpr float kAutoAnchor = -1.f;
+  bool anchored() const { return anchored_; }
+  float anchor() const { return anchor_; }   // the anchor the leaf uses (0: off)
   bool empty() const { return n_dist_.empty(); }
 
   int sample_n(float u) const;
@@ -36,9 +50,10 @@ class ChainDistribution {
   // loop over pmf_n would: the same bits).
   double mass_n(int nmax) const { return n_mass_[size_t(std::clamp(nmax, 0, kMaxN))]; }
   float pmf_tau(int n, uint16_t tau) const;
-  // Direction for (n, tau); density is per solid angle.
-  bool sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, Vec3& dir) const;
-  float pdf_dir(int n, uint16_t tau, const Vec3& dir) const;
+  // Direction for (n, tau) at the query's x_D (which anchored lobes aim
+  // from; unanchored ones ignore it); density is per solid angle.
+  bool sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, const Vec3& xD, Vec3& dir) const;
+  float pdf_dir(int n, uint16_t tau, const Vec3& xD, const Vec3& dir) const;
   // The lobes pdf_dir visits for (n, tau): its cost (one dot product each)
   uint32_t lobe_count(int n, uint16_t tau) const {
     const int t = find_type(n, tau);
@@ -52,7 +67,7 @@ class ChainDistribution {
   // Does the leaf hold a sample of type (n, tau)?
   bool has_type(int n, uint16_t tau) const { return find_type(n, tau) >= 0; }
   uint16_t type_tau(int t) const { return types_[size_t(t)].tau; }
-  bool sample_dir_of(int t, double u_lobe, const Vec2& u, Vec3& dir) const;
+  bool sample_dir_of(int t, double u_lobe, const Vec2& u, const Vec3& xD, Vec3& dir) const;
 
   // What sample_dir reads of lobe i, in one 24-byte record: its vMF and its
   // bin of an alias table over the lobe weights (Walker 1977, Vose 1991):
@@ -60,7 +75,7 @@ class ChainDistribution {
   // one or two records where the CDF's guide table and binary search, then
   // mu and kappa, missed the cache up to four times (pool: design-notes).
   struct LobeEntry {
-    Vec3 mu;
+    Vec3 mu;   // the lobe's centre, or its anchor point A_i when anchored()
     float kappa;
     float q;
     uint32_t alias;
@@ -80,6 +95,15 @@ class ChainDistribution {
     uint32_t first, count;  // its lobes: lobes_[first, first + count)
   };
   int find_type(int n, uint16_t tau) const;
+  // The centre of lobe e seen from xD: sampling and density call this one
+  // function, so both see the same bits. An anchor at xD itself (a measure-
+  // zero case) gives +z.
+  Vec3 centre(const LobeEntry& e, const Vec3& xD) const {
+    if (!anchored_) return e.mu;
+    const Vec3 d = e.mu - xD;
+    const float l2 = glm::dot(d, d);
+    return l2 > 1e-24f && std::isfinite(l2) ? d / std::sqrt(l2) : Vec3(0.f, 0.f, 1.f);
+  }
 
   DiscreteDistribution n_dist_;                    // index n - 1
   std::array<float, kMaxN> n_pmf_{};               // its pmf
@@ -88,6 +112,8 @@ class ChainDistribution {
   std::vector<Type> types_;
   std::vector<LobeEntry> lobes_;                   // every type's lobes with their alias bins
   std::vector<float> lobe_pmf_;                    // their mixture weights within the type (pdf_dir)
+  bool anchored_ = false;
+  float anchor_ = 0.f;
 };
 
 }  // namespace mpg

@@ -42,6 +42,8 @@ void validate(const GuideConfig& cfg) {
   if (sc.threshold < 0) bad("stree_threshold must be >= 0 (0: c sqrt(|S|))", std::to_string(sc.threshold));
   if (sc.max_depth < 0) bad("max_depth must be >= 0", std::to_string(sc.max_depth));
   if (cfg.knn_k < 0) bad("knn_k must be >= 0 (0: c sqrt(|S|))", std::to_string(cfg.knn_k));
+  if (!((cfg.anchor >= 0.f && std::isfinite(cfg.anchor)) || cfg.anchor == ChainDistribution::kAutoAnchor))
+    bad("lobe_anchor must be a finite number >= 0 (0: off) or auto", std::to_string(cfg.anchor));
 }
 
 void GuidingState::build(const std::vector<SubpathSample>& samples, const Vec3& bmin, const Vec3& bmax,
@@ -84,7 +86,7 @@ void GuidingState::build(const std::vector<SubpathSample>& samples, const Vec3& 
     auto work = [&] {
       for (size_t i; (i = next.fetch_add(1)) < dists_.size();)
         dists_[i].build(tree_.unfiltered(int(i)), tree_.samples().data(), tree_.filtered(int(i)).data(),
-                        tree_.filtered(int(i)).size());
+                        tree_.filtered(int(i)).size(), cfg.anchor);
     };
     std::vector<std::thread> pool;
     for (int t = 1; t < std::max(1, sc.threads); ++t) pool.emplace_back(work);
@@ -114,7 +116,7 @@ const ChainDistribution* GuidingState::query(const Vec3& xD, const Vec3& xL) con
       c.idx.swap(c.next);
       c.buf.resize(c.idx.size());
       for (size_t i = 0; i < c.idx.size(); ++i) c.buf[i] = knn_samples_[c.idx[i]];
-      c.dist.build(c.buf);
+      c.dist.build(c.buf, cfg_.anchor);
     }
     c.owner = this;
     c.generation = generation_;

@@ -28,6 +28,9 @@ struct GuideConfig {
   STreeConfig stree;       // c, epsilon, filter, threshold, max_depth, threads
   GuideStructure structure = GuideStructure::STree;
   int knn_k = 0;           // knn: neighbours per query; 0: ceil(c sqrt(|S|)), the STree's threshold
+  // Lobes anchored at x_D + omega_D * anchor * |x_L - x_D| and aimed from the
+  // query's x_D (ChainDistribution::build); 0: centred on omega_D (the paper's).
+  float anchor = 0.f;
 };
 // Range checks of a configuration (throws std::invalid_argument naming the parameter).
 void validate(const GuideConfig& cfg);

@@ -233,7 +233,7 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     const double ul = rng.next_double();  // the lobe: alias bin and the fraction within it
     const Vec2 u(rng.next_float(), rng.next_float());
     const int type = guide->sample_type(n, ut);
-    const bool ok = type >= 0 && guide->sample_dir_of(type, ul, u, dir);
+    const bool ok = type >= 0 && guide->sample_dir_of(type, ul, u, Vec3(xD), dir);
     if (timed) add_guide_time(st, tg);
     if (!ok) return false;
     const uint16_t bits = guide->type_tau(type);
@@ -698,14 +698,14 @@ double ChainEstimator::guided_trace_pdf(const Vec3& xD, size_t k, int n, uint16_
                                         Stats* st) const {
   if (n < 1 || n > nmax || scene_.emitters[size_t(chain_lights_[k])].type != Emitter::Type::Area) return 0.0;
   const ChainDistribution* leaf = guide_at(xD, light_centre_[k], st);
-  return leaf ? leaf_trace_pdf(*leaf, k, n, bits, wD, st ? &st->trace_pt_lobes : nullptr) : 0.0;
+  return leaf ? leaf_trace_pdf(*leaf, k, n, bits, xD, wD, st ? &st->trace_pt_lobes : nullptr) : 0.0;
 }
 
 double ChainEstimator::leaf_trace_pdf(const ChainDistribution& leaf, size_t k, int n, uint16_t bits,
-                                      const Vec3& wD, uint64_t* lobes) const {
+                                      const Vec3& xD, const Vec3& wD, uint64_t* lobes) const {
   if (lobes) *lobes += leaf.lobe_count(n, bits);
   return double(light_dist_.pmf(k)) * double(leaf.pmf_n(n)) * double(leaf.pmf_tau(n, bits)) *
-         double(leaf.pdf_dir(n, bits, wD));
+         double(leaf.pdf_dir(n, bits, xD, wD));
 }
 
 Color ChainEstimator::guided_trace(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
@@ -746,7 +746,7 @@ ChainEstimator::TraceSample ChainEstimator::guided_trace_one(const SurfaceIntera
   if (n < 1 || n > nmax) return TraceSample{};
   const int t = leaf->sample_type(n, u_t);
   Vec3 wD;
-  if (t < 0 || !leaf->sample_dir_of(t, u_lobe, u_dir, wD)) return TraceSample{};
+  if (t < 0 || !leaf->sample_dir_of(t, u_lobe, u_dir, si.p, wD)) return TraceSample{};
   const uint16_t bits = leaf->type_tau(t);
   const Color f = scene_.bsdfs.eval(ctx, si.wi, wD);
   if (is_black(f)) return TraceSample{};
@@ -777,7 +777,7 @@ ChainEstimator::TraceSample ChainEstimator::guided_trace_one(const SurfaceIntera
   const Color Le = scene_.emitted(h);
   if (is_black(Le)) return TraceSample{};
   // guided_trace_pdf with the leaf already at hand (the same leaf: the same x_D and centre)
-  const double g = leaf_trace_pdf(*leaf, k, n, bits, wD, &st.trace_lobes);
+  const double g = leaf_trace_pdf(*leaf, k, n, bits, si.p, wD, &st.trace_lobes);
   const double b = double(scene_.bsdfs.pdf(ctx, si.wi, wD)) * letters;
   if (!(g > 0.0) || !std::isfinite(b + g)) return TraceSample{};
   TraceSample ts;
@@ -991,7 +991,7 @@ Color ChainEstimator::estimate(const SurfaceInteraction& si, const BSDFContext& 
       if (dens->want_g && li >= 0) {
         const size_t k = size_t(li);
         if (const ChainDistribution* leaf = guide_at(si.p, light_centre_[k], &st))
-          dens->g = leaf_trace_pdf(*leaf, k, n, tau_bits(tau_star.data(), n), wD, nullptr);
+          dens->g = leaf_trace_pdf(*leaf, k, n, tau_bits(tau_star.data(), n), si.p, wD, nullptr);
       }
       dens->ok = dens->b > 0.0 && std::isfinite(dens->b) && std::isfinite(dens->g);
     }

@@ -397,8 +397,8 @@ class ChainEstimator {
                           Stats* st) const;
   // ... its product at a leaf already looked up (n within the limit).
   // (lobes: where to count the lobes pdf_dir visits, Stats::trace_lobes / trace_pt_lobes)
-  double leaf_trace_pdf(const ChainDistribution& leaf, size_t k, int n, uint16_t bits, const Vec3& wD,
-                        uint64_t* lobes = nullptr) const;
+  double leaf_trace_pdf(const ChainDistribution& leaf, size_t k, int n, uint16_t bits, const Vec3& xD,
+                        const Vec3& wD, uint64_t* lobes = nullptr) const;
   // K' of the MIS-aware Bernoulli process: each round, with probability beta a
   // trial that succeeds iff it finds (tau*, omega*), otherwise an immediate
   // success; E[K'] = 1 / (beta P + 1 - beta). beta = 1: SMS's K, E = 1/P.

@@ -10,6 +10,7 @@ the last guiding state (recording off)."""
 
 from __future__ import annotations
 
+import math
 import sys
 import time as _time
 from typing import Any
@@ -122,6 +123,11 @@ PIXEL_SPLIT_MAX_COST = 1.1
 # session): the leaves then know the chain types the light sends, which the
 # estimator's own walks in training rarely find (a tiny light's)
 PHOTON_GUIDE = 200_000
+# Lobes anchored at a point along their sample's omega_D, at this multiple of
+# the distance to its light point, and aimed from the query's x_D
+# (lobe_anchor; design-notes "Anchored lobes"); 0: centred on omega_D, the
+# paper's lobes
+LOBE_ANCHOR = 0.0
 
 # Time of one tried chain vertex (a traced seed vertex or a line-search try's
 # reprojected one) in units of one path-tracer ray: bench/step_cost.py
@@ -132,6 +138,19 @@ TRY_COST = 2.0
 # variance x work than the full search (the prediction is from a few spp).
 LIMIT_MARGIN = 0.05
 HALVING_LIMITS = range(11)   # the limits the core counts (kHalvingSlots - 1)
+
+
+def _anchor_param(v) -> float:
+    """lobe_anchor: a number >= 0 (0: off) or "auto" (per leaf; the core's -1)."""
+    if isinstance(v, str) and v.strip().lower() == "auto":
+        return -1.0
+    try:
+        a = float(v)
+    except (TypeError, ValueError):
+        raise RenderError(f"lobe_anchor must be a number >= 0 or auto, got {v!r}") from None
+    if isinstance(v, bool) or not (a >= 0.0 and math.isfinite(a)):
+        raise RenderError(f"lobe_anchor must be a number >= 0 or auto, got {v!r}")
+    return a
 
 
 def _count_param(name: str, v) -> float:
@@ -287,6 +306,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         threshold=int(params.pop("stree_threshold", 0)),
         structure=str(params.pop("guide_structure", "stree")),
         knn_k=int(params.pop("knn_k", 0)),
+        # lobes anchored at x_D + omega_D * a * |x_L - x_D| and aimed from the
+        # query's x_D (design-notes "Anchored lobes"); 0: centred on omega_D
+        anchor=_anchor_param(params.pop("lobe_anchor", LOBE_ANCHOR)),
     )
     # chain_rate: a number (one rate, as sms_star's) or "auto" (the default): rates
     # per pixel learned from the training passes, which run at chain_rate_train
@@ -735,6 +757,13 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["seconds_photons"] = seconds_photons
     st["guide_leaves"] = leaves
     st["guide_structure"] = structure_kw["structure"]
+    st["lobe_anchor"] = "auto" if structure_kw["anchor"] < 0 else structure_kw["anchor"]
+    # (the final guide's leaves with samples: the share whose lobes are
+    # anchored, and their mean anchor; 0 without a guide or with kNN)
+    anchors = ([guide.leaf_anchor(i) for i in range(guide.num_leaves) if guide.leaf_has_lobes(i)]
+               if guide is not None and structure_kw["structure"] == "stree" else [])
+    st["lobe_anchored_fraction"] = float(np.mean([a > 0 for a in anchors])) if anchors else 0.0
+    st["lobe_anchor_mean"] = float(np.mean([a for a in anchors if a > 0])) if any(a > 0 for a in anchors) else 0.0
     st["stree_filter"] = structure_kw["filter"]
     st["guide_bytes"] = (samples_last + st["photon_guide_samples"]) * _core.SUBPATH_SAMPLE_BYTES
     st["seconds"] = _time.monotonic() - t0

@@ -31,7 +31,7 @@ CHAIN_PARAMS = {"tau", "max_chain", "continuation", "uniqueness_threshold", "max
                 "light_trace_area", "light_trace_glossy", "glints"}
 GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "guide_tau",
                 "guide_dir", "training_fraction", "training_guide_fraction", "stree_c", "stree_epsilon", "stree_filter",
-                "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons", "photon_guide",
+                "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons", "photon_guide", "lobe_anchor",
                 "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff",
                 "chain_handoff_negligible",
                 "delta_split", "pixel_split", "pixel_split_max_cost", "limit_in_training", "known_types",
