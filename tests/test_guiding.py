@@ -404,10 +404,18 @@ def test_anchored_lobes_aim_at_their_anchors():
 
 def test_lobe_anchor_is_checked():
     xD, xL, d, n, tau, w = _samples(100)
-    for bad in (-0.5, -2.0, float("inf"), float("nan")):
+    for bad in (-0.5, -2.0, 2e6, float("inf"), float("nan")):
         with pytest.raises(ValueError, match="lobe_anchor"):
             _build(xD, xL, d, n, tau, w, anchor=bad)
     _build(xD, xL, d, n, tau, w, anchor=-1.0)   # auto
+    # an anchored leaf's directions and density need the point they aim from
+    g = _build(xD, xL, d, n, tau, w, anchor=1.0, c=100.0)
+    t = int(tau[0])
+    with pytest.raises(ValueError, match="xD"):
+        g.sample_dir(0, int(n[0]), t, uniform_u(10, 3, 1))
+    with pytest.raises(ValueError, match="xD"):
+        g.pdf_dir(0, int(n[0]), t, np.array([[0, 0, 1]], np.float32))
+    assert np.isfinite(g.sample_dir(0, int(n[0]), t, uniform_u(10, 3, 1), xD=(0.1, 0.2, 0.3))).all()
 
 
 def test_auto_anchor_lines_up_the_parallax():

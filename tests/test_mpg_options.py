@@ -205,7 +205,8 @@ def test_mpg_photon_init_matches_the_mirror_closed_form(params):
                                        ("init", "camera"), ("photons", 0),
                                        ("training_guide_fraction", 1.0),
                                        ("training_guide_fraction", "half"), ("lobe_anchor", -1),
-                                       ("lobe_anchor", "far"), ("lobe_anchor", True), ("lobe_anchor", "inf")])
+                                       ("lobe_anchor", "far"), ("lobe_anchor", True), ("lobe_anchor", "inf"),
+                                       ("lobe_anchor", 1e7)])
 def test_bad_mpg_parameters_are_named(key, value, scenes_dir):
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="8")
     with pytest.raises(RenderError, match=key):

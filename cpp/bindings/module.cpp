@@ -962,12 +962,16 @@ PYBIND11_MODULE(_core, m) {
       .def("pmf_n", [](const GuidingState& g, int leaf, int n) { return g.distribution(leaf).pmf_n(n); })
       .def("leaf_anchor", [](const GuidingState& g, int leaf) { return g.distribution(leaf).anchor(); },
            "The anchor leaf's lobes use (0: centred on their directions; lobe_anchor)")
-      .def("leaf_has_lobes", [](const GuidingState& g, int leaf) { return !g.distribution(leaf).empty(); })
+      .def("leaf_active", [](const GuidingState& g, int leaf) {
+        return g.tree().leaf(leaf).unfiltered > 0 && !g.distribution(leaf).empty(); },
+           "Does a query reach this leaf's distribution (unfiltered samples: selective activation)?")
       .def("pmf_tau", [](const GuidingState& g, int leaf, int n, uint16_t tau) { return g.distribution(leaf).pmf_tau(n, tau); })
       .def("sample_dir", [](const GuidingState& g, int leaf, int n, uint16_t tau, const FArray& u, py::object xD) {
         if (u.ndim() != 2 || u.shape(1) != 3) throw std::invalid_argument("u must have shape (N, 3)");
         const ChainDistribution& d = g.distribution(leaf);
-        const Vec3 p = vec3(xD);
+        if (d.anchored() && xD.is_none())
+          throw std::invalid_argument("the leaf's lobes are anchored (lobe_anchor): pass xD, the point they aim from");
+        const Vec3 p = xD.is_none() ? Vec3(0.f) : vec3(xD);
         FArray out(std::vector<ssize_t>{u.shape(0), 3});
         for (ssize_t i = 0; i < u.shape(0); ++i) {
           Vec3 w(0.f);
@@ -975,16 +979,18 @@ PYBIND11_MODULE(_core, m) {
           out.mutable_at(i, 0) = w.x; out.mutable_at(i, 1) = w.y; out.mutable_at(i, 2) = w.z;
         }
         return out;
-      }, py::arg("leaf"), py::arg("n"), py::arg("tau"), py::arg("u"), py::arg("xD") = py::make_tuple(0.f, 0.f, 0.f),
+      }, py::arg("leaf"), py::arg("n"), py::arg("tau"), py::arg("u"), py::arg("xD") = py::none(),
          "Directions from leaf's lobes of (n, tau) for u (N x 3: lobe, then the vMF pair), seen from xD "
-         "(anchored lobes aim from it; others ignore it).")
+         "(anchored lobes aim from it and need it; others ignore it).")
       .def("pdf_dir", [](const GuidingState& g, int leaf, int n, uint16_t tau, const FArray& dirs, py::object xD) {
         const auto d = rows3(dirs, "dirs");
-        const Vec3 p = vec3(xD);
+        if (g.distribution(leaf).anchored() && xD.is_none())
+          throw std::invalid_argument("the leaf's lobes are anchored (lobe_anchor): pass xD, the point they aim from");
+        const Vec3 p = xD.is_none() ? Vec3(0.f) : vec3(xD);
         DArray out(std::vector<ssize_t>{ssize_t(d.size())});
         for (size_t i = 0; i < d.size(); ++i) out.mutable_data()[i] = g.distribution(leaf).pdf_dir(n, tau, p, d[i]);
         return out;
-      }, py::arg("leaf"), py::arg("n"), py::arg("tau"), py::arg("dirs"), py::arg("xD") = py::make_tuple(0.f, 0.f, 0.f));
+      }, py::arg("leaf"), py::arg("n"), py::arg("tau"), py::arg("dirs"), py::arg("xD") = py::none());
   m.attr("SUBPATH_SAMPLE_BYTES") = sizeof(SubpathSample);
   m.def("warp_sample", &warp_sample, py::arg("name"), py::arg("u"), py::arg("param") = 0.f);
   // DiscreteDistribution::sample on weights for each u: (index, rescaled u) (tests).

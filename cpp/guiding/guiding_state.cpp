@@ -42,8 +42,10 @@ void validate(const GuideConfig& cfg) {
   if (sc.threshold < 0) bad("stree_threshold must be >= 0 (0: c sqrt(|S|))", std::to_string(sc.threshold));
   if (sc.max_depth < 0) bad("max_depth must be >= 0", std::to_string(sc.max_depth));
   if (cfg.knn_k < 0) bad("knn_k must be >= 0 (0: c sqrt(|S|))", std::to_string(cfg.knn_k));
-  if (!((cfg.anchor >= 0.f && std::isfinite(cfg.anchor)) || cfg.anchor == ChainDistribution::kAutoAnchor))
-    bad("lobe_anchor must be a finite number >= 0 (0: off) or auto", std::to_string(cfg.anchor));
+  // (an anchor far beyond the scene aims every lobe as its direction does, up
+  // to rounding; past ~1e30 the anchor overflows and every centre is +z)
+  if (!((cfg.anchor >= 0.f && cfg.anchor <= 1e6f) || cfg.anchor == ChainDistribution::kAutoAnchor))
+    bad("lobe_anchor must be a number in [0, 1e6] (0: off) or auto", std::to_string(cfg.anchor));
 }
 
 void GuidingState::build(const std::vector<SubpathSample>& samples, const Vec3& bmin, const Vec3& bmax,

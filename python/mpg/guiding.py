@@ -10,7 +10,6 @@ the last guiding state (recording off)."""
 
 from __future__ import annotations
 
-import math
 import sys
 import time as _time
 from typing import Any
@@ -141,15 +140,15 @@ HALVING_LIMITS = range(11)   # the limits the core counts (kHalvingSlots - 1)
 
 
 def _anchor_param(v) -> float:
-    """lobe_anchor: a number >= 0 (0: off) or "auto" (per leaf; the core's -1)."""
+    """lobe_anchor: a number in [0, 1e6] (0: off) or "auto" (per leaf; the core's -1)."""
     if isinstance(v, str) and v.strip().lower() == "auto":
         return -1.0
     try:
         a = float(v)
     except (TypeError, ValueError):
-        raise RenderError(f"lobe_anchor must be a number >= 0 or auto, got {v!r}") from None
-    if isinstance(v, bool) or not (a >= 0.0 and math.isfinite(a)):
-        raise RenderError(f"lobe_anchor must be a number >= 0 or auto, got {v!r}")
+        raise RenderError(f"lobe_anchor must be a number in [0, 1e6] or auto, got {v!r}") from None
+    if isinstance(v, bool) or not (0.0 <= a <= 1e6):
+        raise RenderError(f"lobe_anchor must be a number in [0, 1e6] or auto, got {v!r}")
     return a
 
 
@@ -758,9 +757,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["guide_leaves"] = leaves
     st["guide_structure"] = structure_kw["structure"]
     st["lobe_anchor"] = "auto" if structure_kw["anchor"] < 0 else structure_kw["anchor"]
-    # (the final guide's leaves with samples: the share whose lobes are
-    # anchored, and their mean anchor; 0 without a guide or with kNN)
-    anchors = ([guide.leaf_anchor(i) for i in range(guide.num_leaves) if guide.leaf_has_lobes(i)]
+    # (the final guide's leaves that queries reach, with unfiltered samples:
+    # the share whose lobes are anchored, and their mean anchor; 0 without a
+    # guide or with kNN)
+    anchors = ([guide.leaf_anchor(i) for i in range(guide.num_leaves) if guide.leaf_active(i)]
                if guide is not None and structure_kw["structure"] == "stree" else [])
     st["lobe_anchored_fraction"] = float(np.mean([a > 0 for a in anchors])) if anchors else 0.0
     st["lobe_anchor_mean"] = float(np.mean([a for a in anchors if a > 0])) if any(a > 0 for a in anchors) else 0.0
