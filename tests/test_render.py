@@ -280,12 +280,16 @@ def test_ctrl_c_between_passes_keeps_the_image(scenes_dir, monkeypatch):
         return real(*a, **kw)
 
     monkeypatch.setattr(_core, "RenderJob", job)
+    # (the handler before the render: Python's default_int_handler, or SIG_IGN
+    # when the test process was started in the background by a shell without
+    # job control, which then leaves SIGINT ignored)
+    before = signal.getsignal(signal.SIGINT)
     img = mpg.render(sc, integrator="path", spp=1000, seed=1, progress=False)
     assert img.stats["interrupted"] is True
     # passes of 1, 1, 2 spp: the third, started as the flag was set, is kept
     # when it finished before the loop looked (a finished pass is never lost)
     assert (img.stats["passes"], img.spp) in ((2, 2), (3, 4)) and np.isfinite(img.rgb).all()
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.getsignal(signal.SIGINT) is before
 
 
 # --- camera_delta: the light seen from the camera through delta scattering only
