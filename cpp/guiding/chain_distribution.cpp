@@ -236,7 +236,6 @@ void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uin
       }
     }
   }
-  anchored_ = a_used > 0.f;
   anchor_ = a_used;
   fill(a_used);
   lobes_.clear();
@@ -259,7 +258,7 @@ void ChainDistribution::build(SampleSpan a, const SubpathSample* base, const uin
     if (m == 0 || dist.empty()) continue;  // (not reached: weights are > 0) count 0, never drawn
     t.count = uint32_t(m);
     lobes_.resize(lobes_.size() + m);
-    build_alias(dist, anchored_ ? anchors[type_group[ti]] : S.mu, S.kappa, lobes_.data() + t.first);
+    build_alias(dist, anchored() ? anchors[type_group[ti]] : S.mu, S.kappa, lobes_.data() + t.first);
     for (size_t i = 0; i < m; ++i) lobe_pmf_.push_back(dist.pmf(i));
   }
 }

@@ -38,7 +38,7 @@ class ChainDistribution {
   // 0.3, 1 and 3, the one whose lobes are tightest seen from the samples'
   // mean x_D (chain_distribution.cpp).
   static constexpr float kAutoAnchor = -1.f;
-  bool anchored() const { return anchored_; }
+  bool anchored() const { return anchor_ > 0.f; }
   float anchor() const { return anchor_; }   // the anchor the leaf uses (0: off)
   bool empty() const { return n_dist_.empty(); }
 
@@ -99,7 +99,7 @@ class ChainDistribution {
   // function, so both see the same bits. An anchor at xD itself (a measure-
   // zero case) gives +z.
   Vec3 centre(const LobeEntry& e, const Vec3& xD) const {
-    if (!anchored_) return e.mu;
+    if (!(anchor_ > 0.f)) return e.mu;
     const Vec3 d = e.mu - xD;
     const float l2 = glm::dot(d, d);
     return l2 > 1e-24f && std::isfinite(l2) ? d / std::sqrt(l2) : Vec3(0.f, 0.f, 1.f);
@@ -112,8 +112,7 @@ class ChainDistribution {
   std::vector<Type> types_;
   std::vector<LobeEntry> lobes_;                   // every type's lobes with their alias bins
   std::vector<float> lobe_pmf_;                    // their mixture weights within the type (pdf_dir)
-  bool anchored_ = false;
-  float anchor_ = 0.f;
+  float anchor_ = 0.f;   // the anchor its lobes use (0: unanchored)
 };
 
 }  // namespace mpg

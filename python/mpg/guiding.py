@@ -10,6 +10,7 @@ the last guiding state (recording off)."""
 
 from __future__ import annotations
 
+import math
 import sys
 import time as _time
 from typing import Any
@@ -146,7 +147,7 @@ def _anchor_param(v) -> float:
     try:
         a = float(v)
     except (TypeError, ValueError):
-        raise RenderError(f"lobe_anchor must be a number in [0, 1e6] or auto, got {v!r}") from None
+        a = math.nan
     if isinstance(v, bool) or not (0.0 <= a <= 1e6):
         raise RenderError(f"lobe_anchor must be a number in [0, 1e6] or auto, got {v!r}")
     return a
@@ -759,9 +760,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["lobe_anchor"] = "auto" if structure_kw["anchor"] < 0 else structure_kw["anchor"]
     # (the final guide's leaves that queries reach, with unfiltered samples:
     # the share whose lobes are anchored, and their mean anchor; 0 without a
-    # guide or with kNN)
+    # guide, with kNN or with lobe_anchor 0)
     anchors = ([guide.leaf_anchor(i) for i in range(guide.num_leaves) if guide.leaf_active(i)]
-               if guide is not None and structure_kw["structure"] == "stree" else [])
+               if guide is not None and structure_kw["structure"] == "stree" and structure_kw["anchor"] != 0
+               else [])
     st["lobe_anchored_fraction"] = float(np.mean([a > 0 for a in anchors])) if anchors else 0.0
     st["lobe_anchor_mean"] = float(np.mean([a for a in anchors if a > 0])) if any(a > 0 for a in anchors) else 0.0
     st["stree_filter"] = structure_kw["filter"]
