@@ -208,6 +208,29 @@ def test_bit_identical_across_thread_counts():
     assert not np.array_equal(a.rgb, d.rgb)
 
 
+def test_a_pass_result_outlives_its_job_and_can_be_read_twice():
+    """RenderJob.result()'s arrays are views of the job's buffers (no copy):
+    they keep the job alive, so they stay valid after the job is dropped, and
+    a second result() gives the same values."""
+    import gc
+
+    from mpg import _core
+    sc = mpg.load_file(mpg.default_scene_path(), res_x="24", res_y="16")
+    integ = _core.make_integrator(sc.core, "path", dict(sc.desc.integrator.params))
+    job = _core.RenderJob(sc.core, integ, 4, 1, 0, 1)
+    while not job.wait(1.0):
+        pass
+    r1, r2 = job.result(), job.result()
+    assert r1["sum"].shape == (16, 24, 3) and r1["sum_sq"].shape == (16, 24, 3)
+    assert np.array_equal(r1["sum"], r2["sum"]) and np.array_equal(r1["sum_sq"], r2["sum_sq"])
+    expected = np.array(r1["sum"])
+    assert expected.sum() > 0
+    del job, r2
+    gc.collect()
+    _ = [np.ones(16 * 24 * 3) for _ in range(100)]   # (freed memory would be reused)
+    assert np.array_equal(r1["sum"], expected)
+
+
 def test_time_budget_stops_and_keeps_passes():
     sc = mpg.load_file(mpg.default_scene_path(), res_x="64", res_y="48")
     img = mpg.render(sc, time=1.0, progress=False)
