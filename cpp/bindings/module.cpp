@@ -716,16 +716,18 @@ PYBIND11_MODULE(_core, m) {
         auto* p = dynamic_cast<const PathIntegrator*>(&i);
         return p ? p->light_trace_off() : std::string();
       })
-      .def("trace_photons", [](const Integrator& i, uint64_t count, uint64_t seed) {
-        // Photon initialisation of MPG (supplemental Sec. 2): sub-path samples from photons.
+      .def("trace_photons", [](const Integrator& i, uint64_t count, uint64_t seed, int threads) {
+        // Photon initialisation of MPG (supplemental Sec. 2): sub-path samples
+        // from photons (threads: 0 = all cores; the buffer does not depend on it).
+        if (threads < 0) throw std::invalid_argument("threads must be >= 0");
         auto buf = std::make_shared<SubpathBuffer>();
         auto* p = dynamic_cast<const PathIntegrator*>(&i);
         if (p && p->chains()) {
           py::gil_scoped_release nogil;
-          p->chains()->trace_photons(count, seed, buf->v);
+          p->chains()->trace_photons(count, seed, buf->v, threads);
         }
         return buf;
-      }, py::arg("count"), py::arg("seed") = 0);
+      }, py::arg("count"), py::arg("seed") = 0, py::arg("threads") = 0);
   m.def("mis_pair", [](const Integrator& i, py::object o, py::object d, py::object omega_D, py::object seed_dir,
                        const std::string& tau) -> py::object {
     // The MIS densities (a, b) of one chain path on the estimator's and on the

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <array>
 #include <chrono>
+#include <thread>
 
 #include "core/warp.h"
 #include "scene/fresnel.h"
@@ -1255,10 +1256,31 @@ Color ChainEstimator::glint(const GlintLights& gl, const Vec3& o, const Vec3& d,
 }
 
 uint64_t ChainEstimator::trace_photons(uint64_t count, uint64_t seed,
-                                       std::vector<SubpathSample>& out) const {
+                                       std::vector<SubpathSample>& out, int threads) const {
   if (!active_) return 0;
+  // In parallel over blocks of photon indices, each block's samples in its own
+  // vector, appended in index order: every photon has its own stream, so the
+  // buffer is the same as one thread's, whatever the thread count.
+  const uint64_t want = threads > 0 ? uint64_t(threads) : uint64_t(std::thread::hardware_concurrency());
+  const uint64_t nthreads = std::max<uint64_t>(1, std::min<uint64_t>(want, count / 4096));
+  std::vector<std::vector<SubpathSample>> parts(size_t(nthreads - 1));
+  auto block = [&](uint64_t t) {
+    trace_photon_range(count * t / nthreads, count * (t + 1) / nthreads, count, seed,
+                       t == 0 ? out : parts[size_t(t - 1)]);
+  };
+  std::vector<std::thread> pool;
+  for (uint64_t t = 1; t < nthreads; ++t) pool.emplace_back(block, t);
+  block(0);
+  for (auto& th : pool) th.join();
+  for (const auto& v : parts) out.insert(out.end(), v.begin(), v.end());
+  return count;
+}
+
+// Photons [begin, end) of trace_photons(count, seed, ...), appended to `out`.
+void ChainEstimator::trace_photon_range(uint64_t begin, uint64_t end, uint64_t count, uint64_t seed,
+                                        std::vector<SubpathSample>& out) const {
   const int nmax = std::min(p_.max_chain, 16);
-  for (uint64_t i = 0; i < count; ++i) {
+  for (uint64_t i = begin; i < end; ++i) {
     PCG32 rng = make_stream(seed, 0x70686f746f6eULL /* "photon" */, i, 0);
     // Emission: light and position as the estimator draws x_L (sample_light:
     // light by power, position by area), then a direction cosine-weighted
@@ -1330,7 +1352,6 @@ uint64_t ChainEstimator::trace_photons(uint64_t count, uint64_t seed,
       d = wo;
     }
   }
-  return count;
 }
 
 }  // namespace mpg

@@ -243,8 +243,13 @@ class ChainEstimator {
   // after 1..max_chain chain vertices becomes a sub-path sample (x_D = landing
   // point, x_L = emission point, omega_D toward the last chain vertex, n, tau
   // in x_D -> x_L order) weighted by its flux (supplemental Eq. 4).
-  // Deterministic for a given seed. Returns the number of photons traced.
-  uint64_t trace_photons(uint64_t count, uint64_t seed, std::vector<SubpathSample>& out) const;
+  // Deterministic for a given seed: traced on `threads` threads (0: all
+  // cores), the same buffer whatever their count. Returns the number of
+  // photons traced.
+  uint64_t trace_photons(uint64_t count, uint64_t seed, std::vector<SubpathSample>& out, int threads = 0) const;
+  // (trace_photons' photons [begin, end), appended to out)
+  void trace_photon_range(uint64_t begin, uint64_t end, uint64_t count, uint64_t seed,
+                          std::vector<SubpathSample>& out) const;
 
   // The path tracer's weight for a path it traced from the separator `sep`
   // (resolved BSDF `sep_ctx`, loop depth `sep_depth`) through the chain vertices
