@@ -323,6 +323,25 @@ def test_a_rate_map_sets_the_roulette_per_pixel(scenes_dir):
                 run(bad)
 
 
+def test_the_handoff_waits_for_enough_training(scenes_dir):
+    """By default the hand-off (rate 0) needs HANDOFF_MIN_TRAINING training
+    spp: with fewer it is off and says why (no pixel at rate 0, no hand-off
+    split), chain_handoff=true keeps it, and a longer training turns it on."""
+    from mpg.guiding import HANDOFF_MIN_TRAINING
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
+    short = mpg.render(sc, integrator={"type": "mpg", "pixel_split": "handoff"}, spp=24, seed=3, progress=False)
+    assert short.stats["spp_training"] < HANDOFF_MIN_TRAINING
+    assert short.stats["chain_handoff"] == (f"off: {short.stats['spp_training']} training spp, "
+                                            f"fewer than {HANDOFF_MIN_TRAINING}")
+    assert np.all(short.chain_rate_map > 0) and short.stats["chain_handed"] == 0
+    assert short.pixel_split_map is None
+    assert any("pixel_split=handoff" in w for w in short.stats["warnings"])
+    asked = mpg.render(sc, integrator={"type": "mpg", "chain_handoff": True}, spp=24, seed=3, progress=False)
+    assert asked.stats["chain_handoff"] == "on"
+    long = mpg.render(sc, integrator="mpg", spp=128, seed=3, progress=False)
+    assert long.stats["spp_training"] >= HANDOFF_MIN_TRAINING and long.stats["chain_handoff"] == "on"
+
+
 def test_mpg_with_learned_rates_is_deterministic(scenes_dir):
     """The rates are learned from counted costs, not timed ones: the same seed
     and spp give the same image on 1 and 2 threads."""

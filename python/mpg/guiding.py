@@ -91,6 +91,14 @@ KNOWN_TYPES = True
 # 1.21x lower with 1, 1.32x with 4, 16 worse than 4 (docs/results.md,
 # fourteenth session).
 HANDOFF_GUIDED = 4
+# The hand-off (rate 0, chain_handoff) needs this many training spp unless it
+# is asked for: with fewer, the window's estimate of the path tracer's
+# variance has not seen its tail and the hand-off loses the caustic. Sphere,
+# seeds' variance, hand-off on / off: 2 s (7 training spp, 81 % of the pixels
+# handed off) 0.00325 / 0.00228, 3 s (15 spp) 0.00082 / 0.00052, 5 s (31 spp)
+# 0.00043 / 0.00041, 20 s (127 spp) 0.000109 / 0.000144 (double_slabs at 20 s
+# 0.00104 / 0.00136; docs/results.md, thirtieth session).
+HANDOFF_MIN_TRAINING = 24
 # The training measures the guided trace, and the rates choose where it runs
 # (learn_trace; design-notes "The rates choose the guided trace") ...
 LEARN_TRACE = True
@@ -320,6 +328,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # chain_handoff: a pixel may get rate 0, the path tracer alone (mpg.chain_rates, Eq. 2)
     handoff_given = "chain_handoff" in params
     handoff = bool(params.pop("chain_handoff", True))
+    handoff_asked = handoff_given and handoff   # (on whatever the training's length)
     # ... where the chains' second moment is below this fraction of the pixel's
     # own variance per sample (or the path tracer found their light often: mpg.chain_rates)
     negligible = float(params.pop("chain_handoff_negligible", HANDOFF_NEGLIGIBLE))
@@ -502,13 +511,18 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     if auto_halvings:
         halvings_info["step_halvings_predicted"] = 1.0
 
+    def handoff_now() -> bool:
+        """The hand-off with the training so far: on where asked for, by default
+        from HANDOFF_MIN_TRAINING training spp on."""
+        return handoff and (handoff_asked or costs is None or costs.n >= HANDOFF_MIN_TRAINING)
+
     def decide_halvings(counts: dict, n: int, tsum, tsum2, n_all: int):
         """(H, info) from `counts` (limit_* and work stats over n spp) and the
         training so far; None while too little is known."""
         if costs is not None:
             if costs.n < 2:
                 return None
-            qm, ri = learn_rates(costs, q_min=q_min, objective=objective, handoff=handoff,
+            qm, ri = learn_rates(costs, q_min=q_min, objective=objective, handoff=handoff_now(),
                                  negligible=negligible)
             if not ri.get("chain_rate_learned"):
                 return None
@@ -650,6 +664,12 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         """The render's chain rates per pixel: the learned map, or the one rate."""
         return qmap if qmap is not None else uniform(params["chain_rate"])
 
+    if handoff and not handoff_now():
+        handoff = False
+        handoff_note = f"off: {costs.n} training spp, fewer than {HANDOFF_MIN_TRAINING}"
+        if psplit == "handoff":
+            warnings.append(f"pixel_split=handoff splits the pixels handed to the path tracer, and the "
+                            f"hand-off is {handoff_note} (chain_handoff=true keeps it); no split")
     if costs is not None:
         rate_kw = dict(q_min=q_min, handoff=handoff, negligible=negligible,
                        trace=learn_trace and params["handoff_guided"] > 0, tails=trace_tails,
