@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import glob
 import json
+import os
 import pathlib
 import shutil
 import subprocess
@@ -36,8 +37,18 @@ bs = resolve_scene(sys.argv[1])
 sc = mpg.load_file(bs.path, **bs.params)
 img = mpg.render(sc, sys.argv[2], time=float(sys.argv[3]), seed=int(sys.argv[4]), progress=False)
 np.save(sys.argv[5], np.asarray(img.rgb, dtype=np.float32))
+print(mpg._core.__file__)
 print(img.stats["spp"], img.stats.get("spp_training") or 0)
 """
+
+
+def install(core: str, installed: str) -> None:
+    """Put `core` in place of the installed one by a rename (a process that
+    has the old one loaded keeps its own file; an in-place copy would change
+    it under that process)."""
+    tmp = installed + ".ab_budget"
+    shutil.copyfile(core, tmp)
+    os.replace(tmp, installed)
 
 
 def main() -> int:
@@ -60,6 +71,9 @@ def main() -> int:
     if len(so) != 1:
         ap.error("expected one installed core in .venv/lib/python3.11/site-packages/mpg/")
     installed = so[0]
+    for f in (args.core_a, args.core_b):
+        if os.path.realpath(f) == os.path.realpath(installed):
+            ap.error(f"{f} is the installed core itself: copy it elsewhere first (it is overwritten)")
     runs = [("A", args.core_a, args.integrator), ("B", args.core_b, args.integrator)]
     if args.peer:
         runs.append((args.peer, args.core_b, args.peer))
@@ -71,18 +85,24 @@ def main() -> int:
                 # (the order rotates from seed to seed: a drift of the machine's
                 # speed falls on every build alike)
                 for name, core, integ in runs[seed % len(runs):] + runs[:seed % len(runs)]:
-                    shutil.copyfile(core, installed)
+                    install(core, installed)
                     out = f"{tmp}/{name}-{seed}.npy"
                     r = subprocess.run([sys.executable, "-c", RENDER, args.scene, integ, str(args.time), str(seed),
-                                        out], capture_output=True, text=True)
+                                        out], capture_output=True, text=True, timeout=60 * args.time + 600)
                     if r.returncode != 0:
                         sys.stderr.write(r.stderr)
                         return 1
+                    lines = r.stdout.split("\n")
+                    used = [ln for ln in lines if ln.endswith(".so")]
+                    if not used or os.path.realpath(used[-1]) != os.path.realpath(installed):
+                        sys.stderr.write(f"the render loaded {used[-1] if used else '?'}, not {installed} "
+                                         f"(run this script with the .venv's python)\n")
+                        return 1
                     images[name].append(np.load(out))
-                    spp[name].append([int(x) for x in r.stdout.split()[-2:]])
+                    spp[name].append([int(x) for x in lines[-2].split()])
                     print(f"seed {seed} {name}: spp, training spp {spp[name][-1]}", flush=True)
         finally:
-            shutil.copyfile(args.core_b, installed)
+            install(args.core_b, installed)
     res = {"command": " ".join([pathlib.Path(sys.argv[0]).name] + sys.argv[1:]), "scene": args.scene,
            "time": args.time, "seeds": args.seeds, "runs": {}}
     for name, _, integ in runs:
@@ -95,11 +115,14 @@ def main() -> int:
         print(f"== {name} ({integ}): seeds' variance {sv:.4g} (thirds {', '.join(f'{t:.3g}' for t in thirds)}), "
               f"spp {res['runs'][name]['spp_mean']:.1f}, training spp {res['runs'][name]['training_spp_mean']:.1f}")
     a, b = res["runs"]["A"]["seed_variance"], res["runs"]["B"]["seed_variance"]
-    print(f"A / B {a / b:.3f}")
+    def ratio(x: float, y: float) -> str:
+        return f"{x / y:.3g}" if y > 0 else "inf"
+
+    print(f"A / B {ratio(a, b)}")
     if args.peer:
         p = res["runs"][args.peer]["seed_variance"]
-        print(f"{args.peer} / A {p / a:.2f}, {args.peer} / B {p / b:.2f}")
-    out = pathlib.Path(args.out or ROOT / f"bench/results/ab_budget-{args.scene}-{args.time:g}s.json")
+        print(f"{args.peer} / A {ratio(p, a)}, {args.peer} / B {ratio(p, b)}")
+    out = pathlib.Path(args.out or ROOT / f"bench/results/ab_budget-{pathlib.Path(args.scene).stem}-{args.time:g}s.json")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=1))
     print(f"wrote {out}")

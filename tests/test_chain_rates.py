@@ -338,6 +338,8 @@ def test_the_handoff_waits_for_enough_training(scenes_dir):
     assert any("pixel_split=handoff" in w for w in short.stats["warnings"])
     asked = mpg.render(sc, integrator={"type": "mpg", "chain_handoff": True}, spp=24, seed=3, progress=False)
     assert asked.stats["chain_handoff"] == "on"
+    hits = mpg.render(sc, integrator={"type": "mpg", "trace_min_hits": 16}, spp=24, seed=3, progress=False)
+    assert any("trace_min_hits" in w and "ignored" in w for w in hits.stats["warnings"])
     long = mpg.render(sc, integrator="mpg", spp=128, seed=3, progress=False)
     assert long.stats["spp_training"] >= HANDOFF_MIN_TRAINING and long.stats["chain_handoff"] == "on"
 
@@ -346,9 +348,11 @@ def test_mpg_with_learned_rates_is_deterministic(scenes_dir):
     """The rates are learned from counted costs, not timed ones: the same seed
     and spp give the same image on 1 and 2 threads."""
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
-    a = mpg.render(sc, integrator="mpg", spp=24, seed=3, threads=1, progress=False)
-    b = mpg.render(sc, integrator="mpg", spp=24, seed=3, threads=2, progress=False)
-    assert a.stats["chain_rate_mode"] == "per-pixel"
+    # (24 spp train 7: the hand-off asked for, so that rate 0 is among the choices)
+    p = {"type": "mpg", "chain_handoff": True}
+    a = mpg.render(sc, integrator=p, spp=24, seed=3, threads=1, progress=False)
+    b = mpg.render(sc, integrator=p, spp=24, seed=3, threads=2, progress=False)
+    assert a.stats["chain_rate_mode"] == "per-pixel" and a.stats["chain_handoff"] == "on"
     assert np.array_equal(a.rgb, b.rgb)
     q = a.chain_rate_map
     assert np.all((q == 0) | ((q >= np.float32(1 / 32)) & (q <= 1)))
@@ -717,7 +721,7 @@ def test_learn_trace_renders_end_to_end_and_is_deterministic(scenes_dir):
     at a fixed rate it is off without a warning unless asked for."""
     from mpg.chain_rates import TRACE_KS
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
-    p = {"type": "mpg"}
+    p = {"type": "mpg", "chain_handoff": True}   # (32 spp train 7: the hand-off, and so the traces, asked for)
     a = mpg.render(sc, integrator=p, spp=32, seed=3, threads=1, progress=False)
     b = mpg.render(sc, integrator=p, spp=32, seed=3, threads=2, progress=False)
     assert np.array_equal(a.rgb, b.rgb)
@@ -855,7 +859,7 @@ def test_joint_maps_render_end_to_end_and_bad_values_are_refused(scenes_dir):
     from mpg.chain_rates import JOINT_ROUNDS
     from mpg.errors import RenderError
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
-    p = {"type": "mpg", "joint_maps": True, "trace_min_hits": 16}
+    p = {"type": "mpg", "joint_maps": True, "trace_min_hits": 16, "chain_handoff": True}   # (32 spp train 7)
     a = mpg.render(sc, integrator=p, spp=32, seed=3, threads=1, progress=False)
     b = mpg.render(sc, integrator=p, spp=32, seed=3, threads=2, progress=False)
     assert np.array_equal(a.rgb, b.rgb) and np.isfinite(a.rgb).all()

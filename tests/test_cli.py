@@ -110,6 +110,8 @@ def test_mpg_summary_and_chain_rate_map(tmp_path, scenes_dir):
              "--chain-rate-map", str(png)])
     assert r.returncode == 0, r.stderr
     assert "mpg trained" in r.stderr and "chain rates per pixel" in r.stderr
+    # (24 spp train 7: the hand-off waits for more, and the summary says so)
+    assert "hand-off off: 7 training spp" in r.stderr
     # a pixel split held under its cost cap says so
     rc = run([scene, "-D", "res=16", "--integrator", "mpg", "--spp", "24", "-P", "pixel_split_max_cost=1.03",
               "-o", str(tmp_path / "c.exr")])

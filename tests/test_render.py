@@ -211,8 +211,10 @@ def test_bit_identical_across_thread_counts():
 def test_a_pass_result_outlives_its_job_and_can_be_read_twice():
     """RenderJob.result()'s arrays are views of the job's buffers (no copy):
     they keep the job alive, so they stay valid after the job is dropped, and
-    a second result() gives the same values."""
+    a second result() gives the same arrays (the sub-path buffer is moved
+    out by the first); a pass still running has no result."""
     import gc
+    import weakref
 
     from mpg import _core
     sc = mpg.load_file(mpg.default_scene_path(), res_x="24", res_y="16")
@@ -222,13 +224,26 @@ def test_a_pass_result_outlives_its_job_and_can_be_read_twice():
         pass
     r1, r2 = job.result(), job.result()
     assert r1["sum"].shape == (16, 24, 3) and r1["sum_sq"].shape == (16, 24, 3)
+    assert not r1["sum"].flags.owndata   # (a view, not a copy)
     assert np.array_equal(r1["sum"], r2["sum"]) and np.array_equal(r1["sum_sq"], r2["sum_sq"])
     expected = np.array(r1["sum"])
     assert expected.sum() > 0
+    alive = weakref.ref(job)
     del job, r2
     gc.collect()
     _ = [np.ones(16 * 24 * 3) for _ in range(100)]   # (freed memory would be reused)
-    assert np.array_equal(r1["sum"], expected)
+    assert np.array_equal(r1["sum"], expected) and alive() is not None
+    del r1
+    gc.collect()
+    assert alive() is None   # (the last view gone, the job goes too)
+    # A running pass's buffers are still being written: no result yet.
+    running = _core.RenderJob(sc.core, integ, 100_000, 1, 0, 1)
+    try:
+        with pytest.raises(RuntimeError, match="still running"):
+            running.result()
+    finally:
+        running.cancel()
+        running.wait(60.0)
 
 
 def test_time_budget_stops_and_keeps_passes():

@@ -808,7 +808,12 @@ PYBIND11_MODULE(_core, m) {
       .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
       .def("cancel", &RenderJob::cancel)
       .def_property_readonly("progress", &RenderJob::progress)
-      .def("result", [](py::object self) { return pass_to_dict(self.cast<RenderJob&>().result(), self); });
+      .def("result", [](py::object self) {
+        RenderJob& j = self.cast<RenderJob&>();
+        // (the arrays are views of the job's buffers: not while its threads write them)
+        if (!j.wait_for(0.0)) throw std::runtime_error("RenderJob.result(): the pass is still running; wait() first");
+        return pass_to_dict(j.result(), self);
+      });
 
 
   py::class_<SubpathBuffer, std::shared_ptr<SubpathBuffer>>(m, "SubpathBuffer")

@@ -1261,7 +1261,8 @@ uint64_t ChainEstimator::trace_photons(uint64_t count, uint64_t seed,
   // In parallel over blocks of photon indices, each block's samples in its own
   // vector, appended in index order: every photon has its own stream, so the
   // buffer is the same as one thread's, whatever the thread count.
-  const uint64_t want = threads > 0 ? uint64_t(threads) : uint64_t(std::thread::hardware_concurrency());
+  const uint64_t cores = std::max<uint64_t>(1, std::thread::hardware_concurrency());
+  const uint64_t want = threads > 0 ? std::min<uint64_t>(uint64_t(threads), cores) : cores;
   const uint64_t nthreads = std::max<uint64_t>(1, std::min<uint64_t>(want, count / 4096));
   std::vector<std::vector<SubpathSample>> parts(size_t(nthreads - 1));
   auto block = [&](uint64_t t) {

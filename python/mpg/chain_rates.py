@@ -180,7 +180,9 @@ def _finite(a) -> np.ndarray:
     (the common case; nan_to_num's copy took a sixth of the maps' learning)."""
     a = np.asarray(a, dtype=float)
     if np.isfinite(a).all():
-        return a
+        v = a.view()
+        v.flags.writeable = False   # (the caller's array itself: a write would corrupt it)
+        return v
     return np.nan_to_num(a, nan=0.0, posinf=0.0, neginf=0.0)
 
 

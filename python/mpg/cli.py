@@ -159,6 +159,8 @@ def _run(args) -> int:
                      + (f" ({100 * st['chain_rate_fraction_trace']:.0f} % with guided traces, "
                         f"mean {st.get('guided_trace_mean_k', 0.0):.1f})"
                         if st.get("chain_rate_fraction_trace", 0.0) > 0 else "")
+                     + (f" (hand-off {st['chain_handoff']})"
+                        if str(st.get("chain_handoff", "")).startswith("off:") else "")
                      if st.get("chain_rate_mode") == "per-pixel"
                      else f"chain rate {st['chain_rate_mean']:g}")
             if st.get("delta_split", "off") != "off":

@@ -465,7 +465,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         if not pg_state["traced"] and n_photon_guide > 0:
             pg_state["traced"] = True
             tp = _time.monotonic()
-            b = probe.trace_photons(n_photon_guide, (seed * 0x9E3779B97F4A7C15 + 0x5EED) % 2**64)
+            b = probe.trace_photons(n_photon_guide, (seed * 0x9E3779B97F4A7C15 + 0x5EED) % 2**64,
+                                    threads=threads or 0)
             pg_state["seconds"] = _time.monotonic() - tp
             if len(b) > 0:
                 pg_state["buf"], pg_state["mean"] = b, _order_free_mean(b.arrays()["weight"])
@@ -545,7 +546,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             # Initial distribution from photons (supplemental Sec. 2) instead of
             # the surface-uniform seeds alone; flux as the weight (Eq. 4).
             tp0 = _time.monotonic()
-            buf = probe.trace_photons(n_photons, seed)
+            buf = probe.trace_photons(n_photons, seed, threads=threads or 0)
             photon_samples = len(buf)
             if photon_samples > 0:
                 guide = build(buf, photons=False)
@@ -670,6 +671,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         if psplit == "handoff":
             warnings.append(f"pixel_split=handoff splits the pixels handed to the path tracer, and the "
                             f"hand-off is {handoff_note} (chain_handoff=true keeps it); no split")
+        if asked_hits and learn_trace and params["handoff_guided"] > 0:
+            warnings.append(f"trace_min_hits applies where the hand-off runs, and it is {handoff_note} "
+                            f"(chain_handoff=true keeps it); ignored")
     if costs is not None:
         rate_kw = dict(q_min=q_min, handoff=handoff, negligible=negligible,
                        trace=learn_trace and params["handoff_guided"] > 0, tails=trace_tails,
