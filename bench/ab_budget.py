@@ -92,14 +92,15 @@ def main() -> int:
                     if r.returncode != 0:
                         sys.stderr.write(r.stderr)
                         return 1
-                    lines = r.stdout.split("\n")
+                    # (its last two lines: the core's path, then spp and training spp)
+                    lines = [ln for ln in r.stdout.splitlines() if ln.strip()]
                     used = [ln for ln in lines if ln.endswith(".so")]
                     if not used or os.path.realpath(used[-1]) != os.path.realpath(installed):
                         sys.stderr.write(f"the render loaded {used[-1] if used else '?'}, not {installed} "
                                          f"(run this script with the .venv's python)\n")
                         return 1
                     images[name].append(np.load(out))
-                    spp[name].append([int(x) for x in lines[-2].split()])
+                    spp[name].append([int(x) for x in lines[-1].split()])
                     print(f"seed {seed} {name}: spp, training spp {spp[name][-1]}", flush=True)
         finally:
             install(args.core_b, installed)
@@ -115,6 +116,7 @@ def main() -> int:
         print(f"== {name} ({integ}): seeds' variance {sv:.4g} (thirds {', '.join(f'{t:.3g}' for t in thirds)}), "
               f"spp {res['runs'][name]['spp_mean']:.1f}, training spp {res['runs'][name]['training_spp_mean']:.1f}")
     a, b = res["runs"]["A"]["seed_variance"], res["runs"]["B"]["seed_variance"]
+
     def ratio(x: float, y: float) -> str:
         return f"{x / y:.3g}" if y > 0 else "inf"
 
