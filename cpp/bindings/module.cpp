@@ -745,14 +745,17 @@ PYBIND11_MODULE(_core, m) {
                        uint64_t pass, int threads, py::object chain_rate_map, bool record_costs,
                        py::object delta_split_map, py::object pixel_split_map, bool stratify,
                        uint64_t sample_offset, py::object guided_trace_map, bool record_classes,
-                       bool light_trace, py::object delta_branch_map, bool record_branch) {
+                       bool light_trace, py::object delta_branch_map, bool record_branch,
+                       int lt_wave_blocks) {
         if (!scene->committed()) throw std::runtime_error("scene not committed");
         if (spp < 1) throw std::invalid_argument("spp must be >= 1");
+        if (lt_wave_blocks < 1) throw std::invalid_argument("lt_wave_blocks must be >= 1");
         PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
         cfg.record_costs = record_costs;
         cfg.record_classes = record_classes;
         cfg.record_branch = record_branch;
         cfg.light_trace = light_trace;
+        cfg.lt_wave_blocks = lt_wave_blocks;
         cfg.stratify = stratify;
         cfg.sample_offset = sample_offset;
         if (!chain_rate_map.is_none()) {
@@ -804,7 +807,7 @@ PYBIND11_MODULE(_core, m) {
          py::arg("delta_split_map") = py::none(), py::arg("pixel_split_map") = py::none(),
          py::arg("stratify") = false, py::arg("sample_offset") = 0, py::arg("guided_trace_map") = py::none(),
          py::arg("record_classes") = false, py::arg("light_trace") = true, py::arg("delta_branch_map") = py::none(),
-         py::arg("record_branch") = false)
+         py::arg("record_branch") = false, py::arg("lt_wave_blocks") = 1024)
       .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
       .def("cancel", &RenderJob::cancel)
       .def_property_readonly("progress", &RenderJob::progress)
