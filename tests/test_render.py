@@ -256,6 +256,32 @@ def test_time_budget_stops_and_keeps_passes():
     assert 0.0 <= img.stats["seconds_dropped"] <= img.stats["seconds"]
 
 
+def test_time_limited_pass_sizes():
+    """Half of what is left, at most an eighth of the budget, at least 1 spp,
+    never above the schedule's k; without an estimate the schedule's k."""
+    from mpg.render import time_limited_pass_spp
+    assert time_limited_pass_spp(32, 1.6, 2.0, None) == 32
+    assert time_limited_pass_spp(32, 1.6, 2.0, 0.02) == 12    # 2 / 8 = 0.25 s at 20 ms
+    assert time_limited_pass_spp(32, 0.1, 2.0, 0.02) == 2     # 0.05 s left to use
+    assert time_limited_pass_spp(32, 0.01, 2.0, 0.02) == 1
+    assert time_limited_pass_spp(4, 1.6, 2.0, 0.001) == 4
+
+
+def test_a_seconds_per_spp_estimate_sizes_the_first_timed_pass():
+    """With a time budget the estimate sizes the first pass (an estimate of
+    1 us per spp: the schedule's cap, 32 spp, which always finishes); with an
+    spp budget it is ignored and the image is the one without it."""
+    sc = mpg.load_file(mpg.default_scene_path(), res_x="16", res_y="12")
+    img = mpg.render(sc, integrator="path", time=0.05, seconds_per_spp=1e-6, progress=False)
+    assert img.spp >= 32 and img.stats["seconds_per_spp_hint"] == 1e-6
+    plain = mpg.render(sc, integrator="path", time=0.05, progress=False)
+    assert plain.stats["seconds_per_spp_hint"] == 0.0
+    a = mpg.render(sc, integrator="path", spp=5, seconds_per_spp=1e-6, progress=False)
+    b = mpg.render(sc, integrator="path", spp=5, progress=False)
+    assert a.stats["passes"] == b.stats["passes"] == 4 and np.array_equal(a.rgb, b.rgb)
+    assert a.stats["seconds_per_spp_hint"] == 0.0
+
+
 def test_variance_estimate_is_calibrated():
     """The per-pixel variance of the mean predicts the spread between two
     independent renders: mean of (a-b)^2 / (va+vb) is 1 (chi-square/n, n = 3072

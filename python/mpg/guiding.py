@@ -539,6 +539,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         work = (counts.get("rays", 0.0) + STEP_COST * counts.get("walk_steps", 0.0)) / n
         return choose_step_halvings(counts, n, variance, work, 1.0 / float(params["chain_rate"]), 1.0, 1.0)
 
+    train_seconds_per_spp = None   # the last training pass's (the render's first pass is sized by it)
     if probe.chains_active and frac > 0.0:
         budget_spp = None if spp is None else max(0, int(frac * spp))
         budget_t = None if time is None else frac * time
@@ -617,6 +618,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                         params["step_halvings"] = h
                         tstats, tstats_n = {}, 0
             last_iter_t = _time.monotonic() - iter_t0
+            train_seconds_per_spp = r["seconds"] / k
             buf = r["subpaths"]
             samples_last = len(buf)
             if samples_last > 0:
@@ -743,10 +745,17 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         # includes it, seconds_photon_pilot says how much)
         seconds_training = _time.monotonic() - t0
         rest_t = None if time is None else max(0.05, time - seconds_training)
+    # A training pass records costs and runs no photons; the pilot runs the
+    # render's integrator, maps and photons: the slower of the two sizes the
+    # render's first pass (after which its own passes do).
+    pass_hint = train_seconds_per_spp
+    if pass_hint is not None and photon_info.get("seconds_photon_pilot"):
+        pass_hint = max(pass_hint, photon_info["seconds_photon_pilot"] / PHOTON_PILOT_SPP)
     img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
                  chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap, sampler=sampler,
-                 guided_trace_map=gmap, record_classes=record_classes, delta_branch_map=bmap)
+                 guided_trace_map=gmap, record_classes=record_classes, delta_branch_map=bmap,
+                 seconds_per_spp=pass_hint)
     st: dict[str, Any] = img.stats
     st["warnings"] = list(dict.fromkeys(st.get("warnings", []) + warnings))
     st["integrator"] = "mpg"

@@ -258,6 +258,19 @@ def pass_schedule(first: int = 1, cap: int = 32):
         k = min(2 * k, cap)
 
 
+def time_limited_pass_spp(k: int, left: float, budget: float, seconds_per_spp: float | None) -> int:
+    """The spp of a time-limited render's next pass: the schedule's k, cut to
+    half of the `left` seconds and at most an eighth of the `budget`, at
+    `seconds_per_spp` (the slowest pass so far; None: k). A pass the limit
+    cuts is dropped whole, so the passes shrink toward the limit and a cut
+    one loses little: a full-size pass that overran the limit lost up to half
+    of a 30 s chain render, and a chain render's speed varies from pass to
+    pass by 2x and more (a sample can run thousands of Bernoulli trials)."""
+    if not seconds_per_spp:
+        return k
+    return max(1, min(k, int(min(0.5 * left, budget / 8) / seconds_per_spp)))
+
+
 def render(
     scene: Scene,
     integrator: None | str | dict | IntegratorDesc = None,
@@ -273,6 +286,7 @@ def render(
     guided_trace_map: np.ndarray | None = None,
     record_classes: bool = False,
     delta_branch_map: np.ndarray | None = None,
+    seconds_per_spp: float | None = None,
 ) -> Image:
     """Render `scene` and return an Image.
 
@@ -316,6 +330,10 @@ def render(
       mean over RGB) and its squares: Image.class_sum / class_sum_sq (crop
       height x width x classes; bench/error_classes.py); mpg: its final
       render's samples, not the training's.
+    seconds_per_spp: with a time and no spp, an estimate of a pass's seconds
+      per spp (mpg: its training passes'): the first pass is sized by it
+      instead of starting at 1 spp and doubling (each pass costs a few ms
+      more than its samples: a 2 s render ran 21 passes).
     """
     from mpg import _core
 
@@ -370,7 +388,10 @@ def render(
     time_limited = False
     bar = Progress(progress)
     t0 = _time.monotonic()
-    sched = pass_schedule()
+    hint = seconds_per_spp if (time is not None and spp is None and seconds_per_spp
+                               and seconds_per_spp > 0 and np.isfinite(seconds_per_spp)) else None
+    # (an spp budget keeps the fixed schedule: its passes decide the random streams)
+    sched = pass_schedule(first=32 if hint else 1)
     pass_seconds_per_spp = None
     seconds_dropped = 0.0
     # Ctrl-C (and SIGTERM where a caller such as mpg-render maps it to an
@@ -397,15 +418,9 @@ def render(
                 if left <= 0:
                     time_limited = True
                     break
-                if pass_seconds_per_spp and spp is None:
-                    # A pass the limit cuts is dropped whole: size the next one to
-                    # half of what is left and at most an eighth of the budget, by
-                    # the slowest pass so far, so that the passes shrink toward the
-                    # limit and a cut one loses little. A full-size pass that
-                    # overran the limit lost up to half of a 30 s chain render; a
-                    # chain render's speed varies from pass to pass by 2x and more
-                    # (a sample can run thousands of Bernoulli trials).
-                    k = max(1, min(k, int(min(0.5 * left, time / 8) / pass_seconds_per_spp)))
+                if spp is None:
+                    # (before the first pass: the caller's estimate)
+                    k = time_limited_pass_spp(k, left, time, pass_seconds_per_spp or hint)
             pass_t0 = _time.monotonic()
             try:
                 job = _core.RenderJob(core_scene, integ, k, seed, passes, threads or 0,
@@ -514,6 +529,7 @@ def render(
         "interrupted": interrupted,
         "time_limited": time_limited,
         "seconds_dropped": seconds_dropped,  # wall time of a pass the limit cut (its work is dropped)
+        "seconds_per_spp_hint": hint or 0.0,   # the estimate that sized the first pass (0: none)
         "rejected_samples": rejected,
         "samples_per_second": stats.get("samples", 0.0) / elapsed if elapsed > 0 else 0.0,
         "warnings": list(scene.warnings) + warnings,
