@@ -141,6 +141,39 @@ def test_learned_split_is_eq3():
     assert np.isfinite(kn).all() and kn.min() >= 1
 
 
+def test_where_the_window_saw_none_of_that_light_a_wider_one_counts(monkeypatch):
+    """A short training sees a light's images in glass in a few pixels: where
+    the 7x7 window (radius 3) saw none of it, B is its mean over the window
+    DELTA_FILL_SCALE (2) times as wide, 13x13; farther away, and with radius
+    0 (no window), none. Where the narrow window saw it, B is unchanged. From
+    DELTA_FILL_MAX_TRAINING (8) training spp on, the narrow window's none
+    stands."""
+    import mpg.chain_rates as cr
+    var_t = np.full((32, 32), 1.0)
+    var_d = np.zeros((32, 32))
+    var_d[16, 16] = 49.0 * 169.0   # one pixel saw it
+    acc = _acc(var_d, var_t, np.full((32, 32), 2.0), rays=4.0, n=7)
+    q = np.zeros((32, 32), np.float32)
+    dist = np.maximum(*np.abs(np.mgrid[:32, :32] - 16))   # Chebyshev distance to (16, 16)
+    # against means that split wherever B > 0 (B C > TREE_COST o V for B >= 1/9)
+    k, _ = learn_delta_split(acc, q, objective="mse", branched=True, means=(1e-3, 1.0))
+    np.testing.assert_array_equal(k, np.where(dist <= 6, 2.0, 1.0))
+    b, _ = cr._delta_parts(acc, "mse", 3)
+    np.testing.assert_allclose(b[dist <= 3], var_d[16, 16] / 49.0, rtol=1e-9)
+    np.testing.assert_allclose(b[(dist > 3) & (dist <= 6)], var_d[16, 16] / 169.0, rtol=1e-9)
+    assert np.all(b[dist > 6] == 0.0)
+    monkeypatch.setattr(cr, "DELTA_FILL_SCALE", 1)
+    k1, _ = learn_delta_split(acc, q, objective="mse", branched=True, means=(1e-3, 1.0))
+    np.testing.assert_array_equal(k1, np.where(dist <= 3, 2.0, 1.0))
+    monkeypatch.setattr(cr, "DELTA_FILL_SCALE", 2)
+    k0, _ = learn_delta_split(acc, q, radius=0, objective="mse", branched=True, means=(1e-3, 1.0))
+    np.testing.assert_array_equal(k0, np.where(dist == 0, 2.0, 1.0))
+    assert cr.DELTA_FILL_MAX_TRAINING == 8
+    long = _acc(var_d, var_t, np.full((32, 32), 2.0), rays=4.0, n=8)
+    k8, _ = learn_delta_split(long, q, objective="mse", branched=True, means=(1e-3, 1.0))
+    np.testing.assert_array_equal(k8, np.where(dist <= 3, 2.0, 1.0))
+
+
 def test_the_split_weighs_against_the_means_given_and_its_effect_is_its_model():
     """learn_delta_split with means=(mean(wV), mean(C)) (learn_jointly's: the
     render's as the rates predict it) splits by the same rule against those;
@@ -179,12 +212,15 @@ def test_mpg_splits_where_the_camera_sees_glass_and_stays_unbiased(sphere, spher
     k = img.delta_split_map
     assert k is not None and img.stats["delta_split"] == "learned" and (k > 1).any()
     assert k.min() >= 1 and k.max() <= 16
-    # the split pixels see the light in the glass, or are within the 7x7 window of one that does
+    # the split pixels see the light in the glass, or are within the window of
+    # one that does (7x7, or DELTA_FILL_SCALE times as wide where that saw none)
+    from mpg.chain_rates import DELTA_FILL_SCALE
     only = mpg.render(sphere, {"type": "path", "camera_delta": "only"}, spp=1024, seed=2, progress=False)
     lit = only.rgb.mean(axis=2) > 0
     near = np.zeros_like(lit)
+    r = 3 * DELTA_FILL_SCALE
     for y, x in zip(*np.nonzero(lit)):
-        near[max(0, y - 3):y + 4, max(0, x - 3):x + 4] = True
+        near[max(0, y - r):y + r + 1, max(0, x - r):x + r + 1] = True
     assert not (k > 1)[~near].any()
     # mpg's default branches those pixels' extra paths (delta_branch = 8)
     assert img.stats["integrator_params"]["delta_branch"] == 8 and img.stats["delta_branches"] > 0

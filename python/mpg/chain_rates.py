@@ -488,14 +488,37 @@ TREE_COST = 2.0
 BRANCH_RESIDUAL = 1.0 / 24.0
 
 
+# _delta_parts: where the (2 radius + 1)^2 window saw none of the light in the
+# glass, its variance over a window DELTA_FILL_SCALE times as wide instead
+# (radius 3: 13x13; radius 0, no window: none). A
+# short training sees a light's small images in glass in a few pixels only:
+# the sphere's 7 training spp of a 2 s render saw it in 7 of the 100 pixels
+# that hold its variance, the 7x7 windows reached 52 of them, and the
+# pixels left unsplit held 27 % of that light's variance (a 13x13 max filter
+# reached 98.5 %; docs/results.md, thirty-first session). Only under
+# DELTA_FILL_MAX_TRAINING training spp: a longer training's narrow window that
+# saw none of it is evidence, and the fill then added split pixels for
+# nothing. Seeds' variance with the fill against without: 7 training spp (2 s)
+# 1.33x lower on the sphere (32 seeds), 1.07x on double_slabs and 1.10x on
+# the slab (16); 15 (the sphere at 3 s) 1.07x higher, 1 seed of 16 better;
+# 31 (5 s) level for 3-6 % fewer spp; the sphere at 20 s 1.2x higher.
+DELTA_FILL_SCALE = 2
+DELTA_FILL_MAX_TRAINING = 8
+
+
 def _delta_parts(acc: CostAccumulator, objective: str, radius: int) -> tuple[np.ndarray, np.ndarray]:
     """(b, o) per pixel: the weighted variance of the light seen through delta
-    scattering only (blurred over the window) and a delta path's cost in
-    rays (1 + the rays a sample traced after delta scattering only)."""
+    scattering only (blurred over the window; where the window saw none of it
+    in a training of under DELTA_FILL_MAX_TRAINING spp, over one
+    DELTA_FILL_SCALE times as wide) and a delta path's cost in rays
+    (1 + the rays a sample traced after delta scattering only)."""
     n = float(acc.n)
     var_d = _sample_variance(acc.delta_sum, acc.delta_sum_sq, n)
     wgt = _weights(_finite(acc.sum) / n, objective, radius)
-    return _box_blur(wgt * var_d, radius), 1.0 + _finite(acc.delta_rays) / n
+    b = _box_blur(wgt * var_d, radius)
+    if DELTA_FILL_SCALE > 1 and radius > 0 and n < DELTA_FILL_MAX_TRAINING:
+        b = np.where(b > 0.0, b, _box_blur(wgt * var_d, DELTA_FILL_SCALE * radius))
+    return b, 1.0 + _finite(acc.delta_rays) / n
 
 
 # learn_delta_split: a window's records of the branched and plain paths
