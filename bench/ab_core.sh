@@ -20,17 +20,17 @@ ta=(); tb=()
 # Swap cores by rename, never by writing over the installed file: a process
 # that still maps it (a render of the other core being torn down, an editor's
 # language server) would see its code change under it.
-install() { cp "$1" "$so.swap" && mv -f "$so.swap" "$so"; }
+swap_core() { cp "$1" "$so.swap" && mv -f "$so.swap" "$so"; }
 for r in $(seq "$rep"); do
   for v in a b; do
-    if [ $v = a ]; then install "$a"; else install "$b"; fi
+    if [ $v = a ]; then swap_core "$a"; else swap_core "$b"; fi
     .venv/bin/mpg-render "$scene" --spp "$spp" --threads 2 -q --no-preview -o "$tmp/$v.exr" \
         --stats "$tmp/$v.json" "$@" >/dev/null
     t=$(.venv/bin/python -c "import json,sys; print(json.load(open(sys.argv[1]))['seconds'])" "$tmp/$v.json")
     if [ $v = a ]; then ta+=("$t"); else tb+=("$t"); fi
   done
 done
-install "$b"
+swap_core "$b"
 .venv/bin/python - "$tmp" "$scene $spp spp $*" "${ta[*]}" "${tb[*]}" <<'PY' | tee -a "$out"
 import sys, statistics, numpy as np, OpenEXR, Imath
 tmp, what, ta, tb = sys.argv[1:5]

@@ -168,6 +168,23 @@ def test_where_the_window_saw_none_of_that_light_a_wider_one_counts(monkeypatch)
     monkeypatch.setattr(cr, "DELTA_FILL_SCALE", 2)
     k0, _ = learn_delta_split(acc, q, radius=0, objective="mse", branched=True, means=(1e-3, 1.0))
     np.testing.assert_array_equal(k0, np.where(dist == 0, 2.0, 1.0))
+    # "saw none" is a count of the window's lit pixels, not the blurred value:
+    # a summed-area table can leave ~1e-17 in a window that holds nothing
+    rng = np.random.default_rng(3)
+    vr = np.zeros((32, 32))
+    vr[:12, :12] = np.where(rng.random((12, 12)) < 0.3, rng.random((12, 12)) * 1e3, 0.0)
+    accr = _acc(vr, var_t, np.full((32, 32), 2.0), rays=4.0, n=7)
+    br, _ = cr._delta_parts(accr, "mse", 3)
+
+    def window_mean(y, x, r):
+        w = vr[max(0, y - r):y + r + 1, max(0, x - r):x + r + 1]
+        return w.mean(), (w > 0).any()
+
+    for y in range(32):
+        for x in range(32):
+            narrow, seen = window_mean(y, x, 3)
+            expect = narrow if seen else window_mean(y, x, 6)[0]
+            assert br[y, x] == pytest.approx(expect, rel=1e-9, abs=1e-9), (y, x)
     assert cr.DELTA_FILL_MAX_TRAINING == 8
     long = _acc(var_d, var_t, np.full((32, 32), 2.0), rays=4.0, n=8)
     k8, _ = learn_delta_split(long, q, objective="mse", branched=True, means=(1e-3, 1.0))
@@ -212,13 +229,14 @@ def test_mpg_splits_where_the_camera_sees_glass_and_stays_unbiased(sphere, spher
     k = img.delta_split_map
     assert k is not None and img.stats["delta_split"] == "learned" and (k > 1).any()
     assert k.min() >= 1 and k.max() <= 16
-    # the split pixels see the light in the glass, or are within the window of
-    # one that does (7x7, or DELTA_FILL_SCALE times as wide where that saw none)
-    from mpg.chain_rates import DELTA_FILL_SCALE
+    # the split pixels see the light in the glass, or are within the 7x7 window
+    # of one that does (DELTA_FILL_SCALE times as wide after a training of
+    # under DELTA_FILL_MAX_TRAINING spp; this one trains 15)
+    from mpg.chain_rates import DELTA_FILL_MAX_TRAINING, DELTA_FILL_SCALE
     only = mpg.render(sphere, {"type": "path", "camera_delta": "only"}, spp=1024, seed=2, progress=False)
     lit = only.rgb.mean(axis=2) > 0
     near = np.zeros_like(lit)
-    r = 3 * DELTA_FILL_SCALE
+    r = 3 * (DELTA_FILL_SCALE if img.stats["spp_training"] < DELTA_FILL_MAX_TRAINING else 1)
     for y, x in zip(*np.nonzero(lit)):
         near[max(0, y - r):y + r + 1, max(0, x - r):x + r + 1] = True
     assert not (k > 1)[~near].any()

@@ -272,9 +272,9 @@ def test_a_seconds_per_spp_estimate_sizes_the_first_timed_pass():
     1 us per spp: the schedule's cap, 32 spp, which always finishes); with an
     spp budget it is ignored and the image is the one without it."""
     sc = mpg.load_file(mpg.default_scene_path(), res_x="16", res_y="12")
-    img = mpg.render(sc, integrator="path", time=0.05, seconds_per_spp=1e-6, progress=False)
+    img = mpg.render(sc, integrator="path", time=0.5, seconds_per_spp=1e-6, progress=False)
     assert img.spp >= 32 and img.stats["seconds_per_spp_hint"] == 1e-6
-    plain = mpg.render(sc, integrator="path", time=0.05, progress=False)
+    plain = mpg.render(sc, integrator="path", time=0.2, progress=False)
     assert plain.stats["seconds_per_spp_hint"] == 0.0
     a = mpg.render(sc, integrator="path", spp=5, seconds_per_spp=1e-6, progress=False)
     b = mpg.render(sc, integrator="path", spp=5, progress=False)

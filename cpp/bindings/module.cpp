@@ -749,7 +749,6 @@ PYBIND11_MODULE(_core, m) {
                        int lt_wave_blocks) {
         if (!scene->committed()) throw std::runtime_error("scene not committed");
         if (spp < 1) throw std::invalid_argument("spp must be >= 1");
-        if (lt_wave_blocks < 1) throw std::invalid_argument("lt_wave_blocks must be >= 1");
         PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
         cfg.record_costs = record_costs;
         cfg.record_classes = record_classes;

@@ -3,6 +3,7 @@
 #include <xmmintrin.h>
 #include <pmmintrin.h>
 
+#include <algorithm>
 #include <chrono>
 #include <stdexcept>
 
@@ -17,6 +18,7 @@ RenderJob::RenderJob(std::shared_ptr<const Scene> scene, std::shared_ptr<const I
   const Camera& c = scene_->camera;
   const int tx = (c.crop_w + cfg_.tile - 1) / cfg_.tile, ty = (c.crop_h + cfg_.tile - 1) / cfg_.tile;
   tiles_total_ = std::max(1, tx * ty);
+  if (cfg_.lt_wave_blocks < 1) throw std::invalid_argument("lt_wave_blocks must be >= 1");
   // Training passes never reach the image: no photons there (record_costs,
   // or cfg_.light_trace off by mpg's training loop).
   const LightTracer* lt = integrator_->light_tracer();
@@ -39,7 +41,8 @@ void RenderJob::start() { thread_ = std::thread([this] { run(); }); }
 bool RenderJob::wait_for(double seconds) {
   {
     std::unique_lock<std::mutex> lock(done_mutex_);
-    if (!done_cv_.wait_for(lock, std::chrono::duration<double>(std::max(0.0, seconds)),
+    // (clamped: a duration past ~1e10 s overflows the clock's nanoseconds)
+    if (!done_cv_.wait_for(lock, std::chrono::duration<double>(std::clamp(seconds, 0.0, 1e6)),
                            [this] { return done_.load(); }))
       return false;
   }
@@ -496,6 +499,8 @@ void RenderJob::run() {
       result_.lt_work_rays += rays1 - rays0;
       result_.lt_work_walk_steps += steps1 - steps0;
     }
+    // (once all waves are in: a pass cancelled before reports no photons)
+    if (!cancel_.load()) result_.lt_photons = lt_photons_;
   }
   std::vector<std::vector<LightSplat>>().swap(lt_out_);   // (the job outlives the pass: result()'s views)
   for (const Stats& s : stats) result_.stats.merge(s);
@@ -516,7 +521,6 @@ void RenderJob::run() {
 void RenderJob::lt_begin() {
   const Camera& cam = scene_->camera;
   const size_t npix = size_t(cam.crop_w) * size_t(cam.crop_h);
-  result_.lt_photons = lt_photons_;
   result_.lt_sum.assign(npix * 3, 0.0);
   result_.lt_sum_sq.assign(npix * 3, 0.0);
   lt_out_.resize(static_cast<size_t>(std::min(lt_blocks_, cfg_.lt_wave_blocks)));

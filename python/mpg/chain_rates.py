@@ -515,9 +515,13 @@ def _delta_parts(acc: CostAccumulator, objective: str, radius: int) -> tuple[np.
     n = float(acc.n)
     var_d = _sample_variance(acc.delta_sum, acc.delta_sum_sq, n)
     wgt = _weights(_finite(acc.sum) / n, objective, radius)
-    b = _box_blur(wgt * var_d, radius)
+    wv = wgt * var_d
+    b = _box_blur(wv, radius)
     if DELTA_FILL_SCALE > 1 and radius > 0 and n < DELTA_FILL_MAX_TRAINING:
-        b = np.where(b > 0.0, b, _box_blur(wgt * var_d, DELTA_FILL_SCALE * radius))
+        # "saw none" from a count of the window's pixels that saw it: the
+        # summed-area table can leave ~1e-17 where the window holds nothing
+        seen = _box_blur((wv > 0.0).astype(float), radius, total=True) >= 0.5
+        b = np.where(seen, b, _box_blur(wv, DELTA_FILL_SCALE * radius))
     return b, 1.0 + _finite(acc.delta_rays) / n
 
 

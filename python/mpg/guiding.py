@@ -64,6 +64,11 @@ DEFAULT_PHOTON_RATE = 0.25
 # and the core's default rate stays (the pilot's 2 spp are then more than
 # about 2.5 % of the render's: about 2.3x the training's spp at 30 %)
 PHOTON_PILOT_SPP = 2
+# the render's first pass is sized at this many times the training's seconds
+# per spp (render(seconds_per_spp=...); a first pass is never cancelled, so
+# one that ran 8x slower than its estimate would overrun a time budget; with
+# the margin, 16x)
+PASS_HINT_MARGIN = 2.0
 PHOTON_PILOT_MIN_TRAINING = 32
 
 # mpg's default max_chain (the longest chain the estimator, the guide and the
@@ -745,12 +750,16 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         # includes it, seconds_photon_pilot says how much)
         seconds_training = _time.monotonic() - t0
         rest_t = None if time is None else max(0.05, time - seconds_training)
-    # A training pass records costs and runs no photons; the pilot runs the
-    # render's integrator, maps and photons: the slower of the two sizes the
-    # render's first pass (after which its own passes do).
+    # The render's first pass is sized by the last training pass's speed, or
+    # the photon pilot's where that ran and was slower (it runs the render's
+    # integrator, maps and photons), times PASS_HINT_MARGIN: a training pass
+    # runs no photons, splits or traces (double_slabs at 5 s: 38.6 ms a spp
+    # in training, 45 in the render), and the first pass is never cancelled.
     pass_hint = train_seconds_per_spp
     if pass_hint is not None and photon_info.get("seconds_photon_pilot"):
         pass_hint = max(pass_hint, photon_info["seconds_photon_pilot"] / PHOTON_PILOT_SPP)
+    if pass_hint is not None:
+        pass_hint *= PASS_HINT_MARGIN
     img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
                  chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap, sampler=sampler,
