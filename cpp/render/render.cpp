@@ -455,23 +455,12 @@ void RenderJob::run() {
   std::atomic<int> next_block{0};
   // per thread the rays and walk steps its photons took (PassResult::lt_work_*)
   std::vector<uint64_t> lt_rays(size_t(npool), 0), lt_steps(size_t(npool), 0);
-  auto work_of = [](const Stats& s) { return s.rays + s.shadow_rays + s.camera_rays + s.lt_rays; };
   auto worker = [&](int tid) {
     // Flush denormals to zero (Embree's advice; they only slow traversal down).
     _MM_SET_FLUSH_ZERO_MODE(_MM_FLUSH_ZERO_ON);
     _MM_SET_DENORMALS_ZERO_MODE(_MM_DENORMALS_ZERO_ON);
     if (tid < nthreads) tiles(tid);
-    Stats& st = stats[size_t(tid)];
-    st.cancel = &cancel_;   // (the Bernoulli trials of camera-side chains poll it)
-    for (;;) {
-      if (cancel_.load(std::memory_order_relaxed)) return;
-      const int j = next_block.fetch_add(1);
-      if (j >= nb0) return;
-      const uint64_t r0 = work_of(st), w0 = st.walk_steps;
-      lt_block(0, j, st);
-      lt_rays[size_t(tid)] += work_of(st) - r0;
-      lt_steps[size_t(tid)] += st.walk_steps - w0;
-    }
+    lt_blocks(next_block, 0, nb0, stats[size_t(tid)], lt_rays[size_t(tid)], lt_steps[size_t(tid)]);
   };
 
   std::vector<std::thread> pool;
@@ -480,24 +469,10 @@ void RenderJob::run() {
   for (auto& th : pool) th.join();
   if (lt_blocks_ > 0 && !cancel_.load()) {
     lt_add(nb0);
+    if (lt_blocks_ > cfg_.lt_wave_blocks) light_trace(stats, nlt, cfg_.lt_wave_blocks, lt_rays, lt_steps);
     for (size_t t = 0; t < lt_rays.size(); ++t) {
       result_.lt_work_rays += lt_rays[t];
       result_.lt_work_walk_steps += lt_steps[t];
-    }
-    if (lt_blocks_ > cfg_.lt_wave_blocks) {
-      auto work = [&stats, &work_of](uint64_t& rays, uint64_t& steps) {
-        rays = steps = 0;
-        for (const Stats& s : stats) {
-          rays += work_of(s);
-          steps += s.walk_steps;
-        }
-      };
-      uint64_t rays0, steps0, rays1, steps1;
-      work(rays0, steps0);
-      light_trace(stats, nlt, cfg_.lt_wave_blocks);
-      work(rays1, steps1);
-      result_.lt_work_rays += rays1 - rays0;
-      result_.lt_work_walk_steps += steps1 - steps0;
     }
     // (once all waves are in: a pass cancelled before reports no photons)
     if (!cancel_.load()) result_.lt_photons = lt_photons_;
@@ -551,22 +526,33 @@ void RenderJob::lt_add(int nb) {
       }
 }
 
-// The waves from first_wave on, each in its own pool of nthreads.
-void RenderJob::light_trace(std::vector<Stats>& stats, int nthreads, int first_wave) {
+// Photon blocks wave + j, j = next++ < nb, until none is left or the pass is
+// cancelled; adds the rays and walk steps they took to rays and steps.
+void RenderJob::lt_blocks(std::atomic<int>& next, int wave, int nb, Stats& st, uint64_t& rays,
+                          uint64_t& steps) {
+  st.cancel = &cancel_;   // (the Bernoulli trials of camera-side chains poll it)
+  for (;;) {
+    if (cancel_.load(std::memory_order_relaxed)) return;
+    const int j = next.fetch_add(1);
+    if (j >= nb) return;
+    const uint64_t r0 = st.rays + st.shadow_rays + st.camera_rays + st.lt_rays, w0 = st.walk_steps;
+    lt_block(wave, j, st);
+    rays += st.rays + st.shadow_rays + st.camera_rays + st.lt_rays - r0;
+    steps += st.walk_steps - w0;
+  }
+}
+
+// The waves from first_wave on, each in its own pool of nthreads (rays and
+// steps per thread, as lt_blocks counts them).
+void RenderJob::light_trace(std::vector<Stats>& stats, int nthreads, int first_wave,
+                            std::vector<uint64_t>& rays, std::vector<uint64_t>& steps) {
   for (int wave = first_wave; wave < lt_blocks_; wave += cfg_.lt_wave_blocks) {
     const int nb = std::min(cfg_.lt_wave_blocks, lt_blocks_ - wave);
     std::atomic<int> next{0};
     auto worker = [&](int tid) {
       _MM_SET_FLUSH_ZERO_MODE(_MM_FLUSH_ZERO_ON);
       _MM_SET_DENORMALS_ZERO_MODE(_MM_DENORMALS_ZERO_ON);
-      Stats& st = stats[size_t(tid)];
-      st.cancel = &cancel_;   // (the Bernoulli trials of camera-side chains poll it)
-      for (;;) {
-        if (cancel_.load(std::memory_order_relaxed)) return;
-        const int j = next.fetch_add(1);
-        if (j >= nb) return;
-        lt_block(wave, j, st);
-      }
+      lt_blocks(next, wave, nb, stats[size_t(tid)], rays[size_t(tid)], steps[size_t(tid)]);
     };
     std::vector<std::thread> pool;
     for (int t = 1; t < nthreads; ++t) pool.emplace_back(worker, t);

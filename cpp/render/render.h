@@ -158,7 +158,9 @@ class RenderJob {
   void lt_begin();
   void lt_block(int wave, int j, Stats& st);
   void lt_add(int nb);
-  void light_trace(std::vector<Stats>& stats, int nthreads, int first_wave);
+  void lt_blocks(std::atomic<int>& next, int wave, int nb, Stats& st, uint64_t& rays, uint64_t& steps);
+  void light_trace(std::vector<Stats>& stats, int nthreads, int first_wave, std::vector<uint64_t>& rays,
+                   std::vector<uint64_t>& steps);
   static constexpr uint64_t kLtBlock = 4096;
   std::shared_ptr<const Scene> scene_;
   std::shared_ptr<const Integrator> integrator_;
