@@ -270,7 +270,8 @@ def test_time_limited_pass_sizes():
 def test_a_seconds_per_spp_estimate_sizes_the_first_timed_pass():
     """With a time budget the estimate sizes the first pass (an estimate of
     1 us per spp: the schedule's cap, 32 spp, which always finishes); with an
-    spp budget it is ignored and the image is the one without it."""
+    spp budget it is ignored and the image is the one without it; mpg passes
+    one from its training."""
     sc = mpg.load_file(mpg.default_scene_path(), res_x="16", res_y="12")
     img = mpg.render(sc, integrator="path", time=0.5, seconds_per_spp=1e-6, progress=False)
     assert img.spp >= 32 and img.stats["seconds_per_spp_hint"] == 1e-6
@@ -280,6 +281,9 @@ def test_a_seconds_per_spp_estimate_sizes_the_first_timed_pass():
     b = mpg.render(sc, integrator="path", spp=5, progress=False)
     assert a.stats["passes"] == b.stats["passes"] == 4 and np.array_equal(a.rgb, b.rgb)
     assert a.stats["seconds_per_spp_hint"] == 0.0
+    # mpg hands its render twice its training's seconds per spp
+    m = mpg.render(sc, integrator="mpg", time=1.0, progress=False)
+    assert m.stats["spp_training"] > 0 and m.stats["seconds_per_spp_hint"] > 0.0
 
 
 def test_variance_estimate_is_calibrated():

@@ -331,7 +331,7 @@ def render(
       height x width x classes; bench/error_classes.py); mpg: its final
       render's samples, not the training's.
     seconds_per_spp: with a time and no spp, an estimate of a pass's seconds
-      per spp (mpg: its training passes'): the first pass is sized by it
+      per spp (mpg: twice its training passes'): the first pass is sized by it
       instead of starting at 1 spp and doubling (each pass costs a few ms
       more than its samples: a 2 s sphere render ran 17-18 rendering passes,
       12 with the estimate). The first pass is never cancelled: one that runs
