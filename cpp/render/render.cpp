@@ -531,13 +531,14 @@ void RenderJob::lt_add(int nb) {
 void RenderJob::lt_blocks(std::atomic<int>& next, int wave, int nb, Stats& st, uint64_t& rays,
                           uint64_t& steps) {
   st.cancel = &cancel_;   // (the Bernoulli trials of camera-side chains poll it)
+  auto traced = [&st] { return st.rays + st.shadow_rays + st.camera_rays + st.lt_rays; };
   for (;;) {
     if (cancel_.load(std::memory_order_relaxed)) return;
     const int j = next.fetch_add(1);
     if (j >= nb) return;
-    const uint64_t r0 = st.rays + st.shadow_rays + st.camera_rays + st.lt_rays, w0 = st.walk_steps;
+    const uint64_t r0 = traced(), w0 = st.walk_steps;
     lt_block(wave, j, st);
-    rays += st.rays + st.shadow_rays + st.camera_rays + st.lt_rays - r0;
+    rays += traced() - r0;
     steps += st.walk_steps - w0;
   }
 }

@@ -64,12 +64,12 @@ DEFAULT_PHOTON_RATE = 0.25
 # and the core's default rate stays (the pilot's 2 spp are then more than
 # about 2.5 % of the render's: about 2.3x the training's spp at 30 %)
 PHOTON_PILOT_SPP = 2
+PHOTON_PILOT_MIN_TRAINING = 32
 # the render's first pass is sized at this many times the training's seconds
 # per spp (render(seconds_per_spp=...); a first pass is never cancelled, so
 # one that ran 8x slower than its estimate would overrun a time budget; with
 # the margin, 16x)
 PASS_HINT_MARGIN = 2.0
-PHOTON_PILOT_MIN_TRAINING = 32
 
 # mpg's default max_chain (the longest chain the estimator, the guide and the
 # photons take; the core's default, sms_star's, is 6): with 8 the 8-refraction

@@ -390,8 +390,8 @@ def render(
     time_limited = False
     bar = Progress(progress)
     t0 = _time.monotonic()
-    hint = seconds_per_spp if (time is not None and spp is None and seconds_per_spp
-                               and seconds_per_spp > 0 and np.isfinite(seconds_per_spp)) else None
+    hint = seconds_per_spp if (time is not None and spp is None and seconds_per_spp is not None
+                               and 0 < seconds_per_spp < np.inf) else None
     # (an spp budget keeps the fixed schedule: its passes decide the random streams)
     sched = pass_schedule(first=32 if hint else 1)
     pass_seconds_per_spp = None
