@@ -19,7 +19,7 @@ import numpy as np
 
 from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, JOINT_MIN_SAMPLES, PHOTON_PILOT, STEP_COST, CostAccumulator,
                              _sample_variance, guided_trace_map, learn_delta_split, learn_photon_rate,
-                             learn_pixel_split, learn_rates, learn_jointly, learn_rates_traced,
+                             learn_pixel_split, learn_rates, PixelSplitRefiner, learn_jointly, learn_rates_traced,
                              delta_split_effect)
 from mpg.errors import RenderError
 
@@ -131,6 +131,7 @@ TRACE_MIN_HITS = None
 # per sample (design-notes "Splitting the pixels"; docs/results.md, eleventh session)
 PIXEL_SPLIT = "mse"
 PIXEL_SPLIT_MAX_COST = 1.1
+PIXEL_SPLIT_ONLINE = True
 # Photons whose sub-path samples join every training guide (photon_guide;
 # design-notes "Photons in every guide"; docs/results.md, twenty-eighth
 # session): the leaves then know the chain types the light sends, which the
@@ -357,6 +358,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # rates for that error: each sample of a pixel the mean of k camera samples),
     # "handoff", k everywhere, or "off" (mpg.chain_rates.learn_pixel_split)
     psplit_given = "pixel_split" in params
+    # pixel_split_online: the learned split refined between the render's passes
+    # by the render's own samples (chain_rates.PixelSplitRefiner)
+    psplit_online = _as_bool("pixel_split_online", params.pop("pixel_split_online", PIXEL_SPLIT_ONLINE))
     psplit = _split_setting("pixel_split", params.pop("pixel_split", PIXEL_SPLIT), ("off", "mse", "relmse", "handoff"))
     # ... with its predicted cost per sample capped ("none": no cap)
     psplit_cap = params.pop("pixel_split_max_cost", PIXEL_SPLIT_MAX_COST)
@@ -717,12 +721,16 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         kmap, bmap = uniform(split), None
         rate_info.update(delta_split_fraction=1.0, delta_split_mean=float(split))
     smap = None
+    refiner = None
     if psplit in ("mse", "relmse", "handoff") and costs is not None and costs.n >= 2:
+        split_kw = dict(objective="mse" if psplit == "handoff" else psplit,
+                        where=(rates() <= 0.0) if psplit == "handoff" else None,
+                        branched=branch_where(), max_cost=psplit_cap)
         smap = learned(*learn_pixel_split(costs, rates(), kmap if kmap is not None else uniform(1),
-                                          objective="mse" if psplit == "handoff" else psplit,
-                                          where=(rates() <= 0.0) if psplit == "handoff" else None,
-                                          branched=branch_where(),
-                                          max_cost=psplit_cap))
+                                          **split_kw))
+        if psplit_online:
+            # refined between the render's passes by its own samples (PixelSplitRefiner)
+            refiner = PixelSplitRefiner(costs, rates(), kmap if kmap is not None else uniform(1), **split_kw)
     elif isinstance(psplit, int) and psplit > 1:
         smap = uniform(psplit)
         rate_info.update(pixel_split_fraction=1.0, pixel_split_mean=float(psplit))
@@ -764,7 +772,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
                  chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap, sampler=sampler,
                  guided_trace_map=gmap, record_classes=record_classes, delta_branch_map=bmap,
-                 seconds_per_spp=pass_hint)
+                 seconds_per_spp=pass_hint, pixel_split_refine=None if refiner is None else refiner.update)
     st: dict[str, Any] = img.stats
     st["warnings"] = list(dict.fromkeys(st.get("warnings", []) + warnings))
     st["integrator"] = "mpg"
@@ -820,5 +828,6 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     img.delta_split_map = kmap
     img.delta_branch_map = bmap
     st["pixel_split"] = str(psplit) if smap is not None else "off"
-    img.pixel_split_map = smap
+    if refiner is None:
+        img.pixel_split_map = smap   # (refined: render() set the last one)
     return img

@@ -34,12 +34,12 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons", "photon_guide", "lobe_anchor",
                 "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff",
                 "chain_handoff_negligible",
-                "delta_split", "pixel_split", "pixel_split_max_cost", "limit_in_training", "known_types",
+                "delta_split", "pixel_split", "pixel_split_max_cost", "pixel_split_online", "limit_in_training", "known_types",
                 "handoff_guided", "learn_trace", "trace_tails", "joint_maps",
                 "trace_min_hits", "joint_min_samples", "delta_plain"}
 BOOL_PARAMS = {"hide_emitters", "delta_split_sobol", "light_trace_through", "light_trace_area", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "mis_rate", "chain_handoff", "limit_in_training", "known_types",
-               "learn_trace", "trace_tails", "joint_maps", "delta_plain"}
+               "learn_trace", "trace_tails", "joint_maps", "delta_plain", "pixel_split_online"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
 # The SMS paper's integrators, with their parameter names, map onto `sms`.
 SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
@@ -249,6 +249,10 @@ class Progress:
             self.stream.flush()
 
 
+# pixel_split_refine's first call: before the first pass after this many spp
+REFINE_FIRST = 4
+
+
 def pass_schedule(first: int = 1, cap: int = 32):
     """Deterministic spp per pass: 1, 1, 2, 4, ... capped (same spp -> same passes)."""
     k = first
@@ -287,6 +291,7 @@ def render(
     record_classes: bool = False,
     delta_branch_map: np.ndarray | None = None,
     seconds_per_spp: float | None = None,
+    pixel_split_refine=None,
 ) -> Image:
     """Render `scene` and return an Image.
 
@@ -336,6 +341,14 @@ def render(
       more than its samples: a 2 s sphere render ran 17-18 rendering passes,
       12 with the estimate). The first pass is never cancelled: one that runs
       more than 8x slower than the estimate overruns the budget.
+    pixel_split_refine: a callable (ks, ks2, kn, n) -> (pixel split map, info)
+        called before a pass once n, the spp so far, reaches REFINE_FIRST and
+        then twice the n of its last call; ks / ks2 are the per-pixel sums of k s and
+        k s^2 over the samples s so far (k the split each ran at), kn of k.
+        mpg's chain_rates.PixelSplitRefiner.update: the map it returns runs from that
+        pass on (the image stays unbiased, design-notes "Splitting the pixels"). Each
+        pass then starts a pixel's sequences at the camera samples it took before
+        (RenderJob's sample_base_map: kn), so no point is used twice.
     """
     from mpg import _core
 
@@ -396,6 +409,9 @@ def render(
     sched = pass_schedule(first=32 if hint else 1)
     pass_seconds_per_spp = None
     seconds_dropped = 0.0
+    refine_at, refine_info = REFINE_FIRST, {}
+    if pixel_split_refine is not None:
+        ks, ks2, kn = np.zeros((h, w, 3)), np.zeros((h, w, 3)), np.zeros((h, w))
     # Ctrl-C (and SIGTERM where a caller such as mpg-render maps it to an
     # interrupt) sets a flag the loop checks, instead of raising wherever it
     # lands: a KeyboardInterrupt between two passes (creating a job, adding a
@@ -423,6 +439,9 @@ def render(
                 if spp is None:
                     # (before the first pass: the caller's estimate)
                     k = time_limited_pass_spp(k, left, time, pass_seconds_per_spp or hint)
+            if pixel_split_refine is not None and done >= refine_at:
+                pixel_split_map, refine_info = pixel_split_refine(ks, ks2, kn, done)
+                refine_at = 2 * done
             pass_t0 = _time.monotonic()
             try:
                 job = _core.RenderJob(core_scene, integ, k, seed, passes, threads or 0,
@@ -431,7 +450,8 @@ def render(
                                       pixel_split_map=pixel_split_map,
                                       stratify=sampler == "stratified", sample_offset=done,
                                       guided_trace_map=guided_trace_map, record_classes=record_classes,
-                                      delta_branch_map=delta_branch_map)
+                                      delta_branch_map=delta_branch_map,
+                                      sample_base_map=None if pixel_split_refine is None else kn)
             except ValueError as e:   # a bad chain_rate_map (shape, values)
                 raise RenderError(str(e)) from None
             cancelled_by_time = False
@@ -465,6 +485,12 @@ def render(
                 break
             acc += r["sum"]
             acc2 += r["sum_sq"]
+            if pixel_split_refine is not None:
+                kc = np.ones((h, w)) if pixel_split_map is None else np.maximum(
+                    np.asarray(pixel_split_map, dtype=float), 1.0)
+                ks += kc[..., None] * r["sum"]
+                ks2 += kc[..., None] * r["sum_sq"]
+                kn += kc * k
             if r["lt_photons"] > 0:
                 lt_acc = r["lt_sum"] if lt_acc is None else lt_acc + r["lt_sum"]
                 lt_acc2 = r["lt_sum_sq"] if lt_acc2 is None else lt_acc2 + r["lt_sum_sq"]
@@ -537,7 +563,11 @@ def render(
         "warnings": list(scene.warnings) + warnings,
         **{k: (float(v) if k.startswith(("max_chain_", "chain_m2", "pt_shared_m2", "limit_")) else int(v))
            for k, v in stats.items()},
+        **refine_info,
     }
     # (class sums None without record_classes, or when no pass finished)
-    return Image(rgb=mean.astype(np.float32), variance=var.astype(np.float32), spp=done,
-                 stats=out_stats, class_sum=cls_sum, class_sum_sq=cls_sum2)
+    img = Image(rgb=mean.astype(np.float32), variance=var.astype(np.float32), spp=done,
+                stats=out_stats, class_sum=cls_sum, class_sum_sq=cls_sum2)
+    if pixel_split_refine is not None:
+        img.pixel_split_map = pixel_split_map   # (the last one a pass ran with)
+    return img
