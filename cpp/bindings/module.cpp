@@ -746,7 +746,7 @@ PYBIND11_MODULE(_core, m) {
                        py::object delta_split_map, py::object pixel_split_map, bool stratify,
                        uint64_t sample_offset, py::object guided_trace_map, bool record_classes,
                        bool light_trace, py::object delta_branch_map, bool record_branch,
-                       int lt_wave_blocks, py::object sample_base_map) {
+                       int lt_wave_blocks, uint64_t sequence_epoch) {
         if (!scene->committed()) throw std::runtime_error("scene not committed");
         if (spp < 1) throw std::invalid_argument("spp must be >= 1");
         PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
@@ -757,6 +757,7 @@ PYBIND11_MODULE(_core, m) {
         cfg.lt_wave_blocks = lt_wave_blocks;
         cfg.stratify = stratify;
         cfg.sample_offset = sample_offset;
+        cfg.sequence_epoch = sequence_epoch;
         if (!chain_rate_map.is_none()) {
           auto m = pixel_map(chain_rate_map, scene->camera, "chain_rate_map");
           bool zero = false;
@@ -791,21 +792,6 @@ PYBIND11_MODULE(_core, m) {
             throw std::invalid_argument("pixel_split_map cannot be used with record_costs");
           cfg.pixel_split_map = std::move(m);
         }
-        if (!sample_base_map.is_none()) {
-          // (float64: exact integers to 2^53; the counts of camera samples a pixel took)
-          const auto a = py::cast<py::array_t<double, py::array::c_style | py::array::forcecast>>(sample_base_map);
-          const Camera& c = scene->camera;
-          if (a.ndim() != 2 || a.shape(0) != c.crop_h || a.shape(1) != c.crop_w)
-            throw std::invalid_argument("sample_base_map must have shape (crop height, crop width)");
-          auto m = std::make_shared<std::vector<uint64_t>>(size_t(a.size()));
-          for (py::ssize_t i = 0; i < a.size(); ++i) {
-            const double v = a.data()[i];
-            if (!(v >= 0.0 && v <= 4503599627370496.0 && v == std::floor(v)))
-              throw std::invalid_argument("sample_base_map values must be whole numbers in [0, 2^52]");
-            (*m)[size_t(i)] = uint64_t(v);
-          }
-          cfg.sample_base_map = std::move(m);
-        }
         if (!guided_trace_map.is_none()) {
           auto m = pixel_map(guided_trace_map, scene->camera, "guided_trace_map");
           for (float v : *m)
@@ -822,7 +808,7 @@ PYBIND11_MODULE(_core, m) {
          py::arg("stratify") = false, py::arg("sample_offset") = 0, py::arg("guided_trace_map") = py::none(),
          py::arg("record_classes") = false, py::arg("light_trace") = true, py::arg("delta_branch_map") = py::none(),
          py::arg("record_branch") = false, py::arg("lt_wave_blocks") = 1024,
-         py::arg("sample_base_map") = py::none())
+         py::arg("sequence_epoch") = 0)
       .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
       .def("cancel", &RenderJob::cancel)
       .def_property_readonly("progress", &RenderJob::progress)

@@ -125,9 +125,11 @@ void RenderJob::run() {
     // A camera ray through film pixel (fx, fy), its position drawn from the pixel filter.
     // With cfg_.stratify and an index >= 0 the position is point `index` of the
     // pixel's Sobol sequence shifted by `shift` (the pixel's two 32-bit words).
-    const uint64_t shift_key = mix64(cfg_.seed ^ 0x5851f42d4c957f2dULL);
+    // (PassConfig::sequence_epoch: 0 salts nothing)
+    const uint64_t epoch_salt = cfg_.sequence_epoch ? mix64(cfg_.sequence_epoch * 0x9E3779B97F4A7C15ULL) : 0;
+    const uint64_t shift_key = mix64(cfg_.seed ^ 0x5851f42d4c957f2dULL ^ epoch_salt);
     // the delta split's own sequence per pixel (its shift apart from the positions')
-    const uint64_t split_key = mix64(cfg_.seed ^ 0x2545f4914f6cdd1dULL);
+    const uint64_t split_key = mix64(cfg_.seed ^ 0x2545f4914f6cdd1dULL ^ epoch_salt);
     // (sobol: the sequence's point even in an unstratified pass: the delta
     // split's extra paths, Integrator::delta_split_sobol)
     auto camera_ray = [&](PCG32& rng, int fx, int fy, Vec3& o, Vec3& d, float& tmin, float& tmax,
@@ -174,9 +176,6 @@ void RenderJob::run() {
           const bool pbranch = branched && !(bmap && !((*bmap)[size_t(y) * W + x] > 0.f));
           double bn = 0, brays = 0, bw = 0, uw = 0;   // (record_costs, branched: PassResult::bdelta_*)
           const int kpix = smap ? std::max(1, int((*smap)[size_t(y) * W + x])) : 1;
-          // the pixel's first point of its sequences this pass (PassConfig::sample_base_map)
-          const uint64_t base = cfg_.sample_base_map ? (*cfg_.sample_base_map)[size_t(y) * W + x]
-                                                     : cfg_.sample_offset * uint64_t(kpix);
           const uint64_t steps0 = st.chain_steps, walk0 = st.walk_steps, rays0 = st.rays + st.shadow_rays + st.camera_rays;
           const uint64_t delta0 = st.delta_prefix_rays, trace0 = st.trace_rays;
           const uint64_t lobes0 = st.trace_lobes, pt_lobes0 = st.trace_pt_lobes;
@@ -202,7 +201,7 @@ void RenderJob::run() {
               Vec3 o, d;
               float tmin, tmax;
               camera_ray(rng, fx, fy, o, d, tmin, tmax,
-                         int64_t(base + uint64_t(k) * uint64_t(kpix) + uint64_t(sub)), shift);
+                         int64_t((cfg_.sample_offset + uint64_t(k)) * uint64_t(kpix) + uint64_t(sub)), shift);
               st.sample_alt_delta = Color(0.f);
               st.sample_owned_hit = false;
               for (Color& c : st.sample_trace_hits_delta) c = Color(0.f);
@@ -244,7 +243,7 @@ void RenderJob::run() {
                   // slivers of the light seen in the glass). Else independent.
                   if (split_sobol)
                     camera_ray(rng, fx, fy, o2, d2, tmin2, tmax2,
-                               int64_t((base + uint64_t(k) * uint64_t(kpix) + uint64_t(sub)) *
+                               int64_t(((cfg_.sample_offset + uint64_t(k)) * uint64_t(kpix) + uint64_t(sub)) *
                                            uint64_t(ksplit - 1) + uint64_t(j - 1)),
                                split_shift, true);
                   else

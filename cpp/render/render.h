@@ -135,13 +135,12 @@ struct PassConfig {
   // sequence when sample_offset counts the samples of the passes before.
   bool stratify = false;
   uint64_t sample_offset = 0;
-  // Per pixel the first point of its sequences this pass takes (crop height x
-  // width), in place of sample_offset x pixel_split: sample k's sub-sample sub
-  // is point base + k x pixel_split + sub. A caller whose pixel split changes
-  // from pass to pass passes the camera samples each pixel took before (the
-  // sum of its passes' spp x split), so the passes never reuse a point
-  // whatever the counts did (mpg.render's pixel_split_refine).
-  std::shared_ptr<const std::vector<uint64_t>> sample_base_map;
+  // Salts the per-pixel shifts of the Sobol sequences (the positions' and the
+  // delta split's): 0 keeps the seed's own; a caller that changes a map from
+  // the samples of earlier passes (mpg.render's pixel_split_refine) starts a
+  // new epoch there, with sample_offset counted from its start, so no later
+  // position is a function of a shift the earlier samples depended on.
+  uint64_t sequence_epoch = 0;
   // Photon blocks (RenderJob::kLtBlock photons each) per wave: the first
   // wave runs in the tiles' threads, any later one after them; a wave's
   // splats are held at once (at most one per photon, 16 bytes: 64 MiB at

@@ -919,9 +919,8 @@ class PixelSplitRefiner:
     The image stays unbiased: a sample is the mean of k camera samples drawn
     after k was fixed, so E[sample | k] = I whatever earlier samples chose
     k, and the pixel is the plain mean of a number of samples the schedule
-    fixes. (The render hands each pass the camera samples a pixel took
-    before as its first point of the pixel's sequences, so no point is used
-    twice whether a count rises or falls.)"""
+    fixes. (Each update starts a new epoch of the pixels' Sobol sequences in
+    the render, whose shifts the earlier samples never saw.)"""
 
     def __init__(self, acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radius: int = 1, objective: str = "mse", k_max: int = PIXEL_SPLIT_MAX, iterations: int = 30,
                  where: np.ndarray | None = None, branched: bool | np.ndarray = False,
@@ -932,11 +931,11 @@ class PixelSplitRefiner:
         self.n_t = float(acc.n)
         self.radius, self.k_max, self.iterations = radius, k_max, iterations
         self.where, self.max_cost = where, max_cost
-        self.k: np.ndarray | None = None   # the last map update() returned
+        self.k: np.ndarray | None = None   # the last map update() solved
         self.updates = 0
 
-    def update(self, ks: np.ndarray, ks2: np.ndarray, kn: np.ndarray, n: int) -> tuple[np.ndarray, dict]:
-        """The map for the next passes from the render's n spp so far: per pixel
+    def update(self, ks: np.ndarray, ks2: np.ndarray, kn: np.ndarray, n: int) -> tuple[np.ndarray | None, dict]:
+        """The map for the next passes (None: no pixel split) from the render's n spp so far: per pixel
         ks / ks2 the sums of k s and k s^2 and kn of k over its samples s (k
         the count each ran at; split_sample_variance)."""
         if n < 2:
@@ -946,7 +945,7 @@ class PixelSplitRefiner:
                                           self.iterations, self.where, self.max_cost)
         self.updates += 1
         # (the render's stats: beside the training's pixel_split_* of the map it started with)
-        return self.k, {"pixel_split_online_updates": self.updates,
+        return (self.k if np.any(self.k > 1.0) else None), {"pixel_split_online_updates": self.updates,
                         "pixel_split_online_fraction": info["pixel_split_fraction"],
                         "pixel_split_online_mean": info["pixel_split_mean"],
                         "pixel_split_online_cost": info["pixel_split_cost"],

@@ -728,7 +728,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                         branched=branch_where(), max_cost=psplit_cap)
         smap = learned(*learn_pixel_split(costs, rates(), kmap if kmap is not None else uniform(1),
                                           **split_kw))
-        if psplit_online:
+        if psplit_online and (split_kw["where"] is None or np.any(split_kw["where"])):
             # refined between the render's passes by its own samples (PixelSplitRefiner)
             refiner = PixelSplitRefiner(costs, rates(), kmap if kmap is not None else uniform(1), **split_kw)
     elif isinstance(psplit, int) and psplit > 1:
@@ -827,7 +827,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     img.chain_rate_map = qmap
     img.delta_split_map = kmap
     img.delta_branch_map = bmap
-    st["pixel_split"] = str(psplit) if smap is not None else "off"
+    st["pixel_split"] = str(psplit) if (smap is not None or img.pixel_split_map is not None) else "off"
     if refiner is None:
         img.pixel_split_map = smap   # (refined: render() set the last one)
     return img

@@ -345,10 +345,11 @@ def render(
         called before a pass once n, the spp so far, reaches REFINE_FIRST and
         then twice the n of its last call; ks / ks2 are the per-pixel sums of k s and
         k s^2 over the samples s so far (k the split each ran at), kn of k.
-        mpg's chain_rates.PixelSplitRefiner.update: the map it returns runs from that
-        pass on (the image stays unbiased, design-notes "Splitting the pixels"). Each
-        pass then starts a pixel's sequences at the camera samples it took before
-        (RenderJob's sample_base_map: kn), so no point is used twice.
+        mpg's chain_rates.PixelSplitRefiner.update: the map it returns (None: no split)
+        runs from that pass on (the image stays unbiased, design-notes "Splitting the
+        pixels"), and each call starts a new epoch of the pixels' Sobol sequences
+        (RenderJob's sequence_epoch: fresh shifts, sample_offset from 0), so no later
+        film position is a function of a shift the earlier samples depended on.
     """
     from mpg import _core
 
@@ -410,8 +411,11 @@ def render(
     pass_seconds_per_spp = None
     seconds_dropped = 0.0
     refine_at, refine_info = REFINE_FIRST, {}
+    epoch, epoch_start = 0, 0   # (RenderJob's sequence_epoch and the spp when it began)
     if pixel_split_refine is not None:
         ks, ks2, kn = np.zeros((h, w, 3)), np.zeros((h, w, 3)), np.zeros((h, w))
+        new_map, new_info = pixel_split_map, {}
+        ran_map = pixel_split_map
     # Ctrl-C (and SIGTERM where a caller such as mpg-render maps it to an
     # interrupt) sets a flag the loop checks, instead of raising wherever it
     # lands: a KeyboardInterrupt between two passes (creating a job, adding a
@@ -428,6 +432,12 @@ def render(
             if stop.is_set():
                 interrupted = True
                 break
+            if pixel_split_refine is not None and done >= refine_at:
+                # (before the pass is sized: its time comes off what is left)
+                new_map, new_info = pixel_split_refine(ks, ks2, kn, done)
+                refine_at = 2 * done
+                # a new epoch of the Sobol sequences: fresh shifts, counted from 0
+                epoch, epoch_start = epoch + 1, done
             k = next(sched)
             if spp is not None:
                 k = min(k, spp - done)
@@ -439,19 +449,17 @@ def render(
                 if spp is None:
                     # (before the first pass: the caller's estimate)
                     k = time_limited_pass_spp(k, left, time, pass_seconds_per_spp or hint)
-            if pixel_split_refine is not None and done >= refine_at:
-                pixel_split_map, refine_info = pixel_split_refine(ks, ks2, kn, done)
-                refine_at = 2 * done
+            if pixel_split_refine is not None:
+                pixel_split_map, pass_map, pass_info = new_map, new_map, new_info
             pass_t0 = _time.monotonic()
             try:
                 job = _core.RenderJob(core_scene, integ, k, seed, passes, threads or 0,
                                       chain_rate_map=chain_rate_map,
                                       delta_split_map=delta_split_map,
                                       pixel_split_map=pixel_split_map,
-                                      stratify=sampler == "stratified", sample_offset=done,
+                                      stratify=sampler == "stratified", sample_offset=done - epoch_start,
                                       guided_trace_map=guided_trace_map, record_classes=record_classes,
-                                      delta_branch_map=delta_branch_map,
-                                      sample_base_map=None if pixel_split_refine is None else kn)
+                                      delta_branch_map=delta_branch_map, sequence_epoch=epoch)
             except ValueError as e:   # a bad chain_rate_map (shape, values)
                 raise RenderError(str(e)) from None
             cancelled_by_time = False
@@ -486,8 +494,9 @@ def render(
             acc += r["sum"]
             acc2 += r["sum_sq"]
             if pixel_split_refine is not None:
-                kc = np.ones((h, w)) if pixel_split_map is None else np.maximum(
-                    np.asarray(pixel_split_map, dtype=float), 1.0)
+                # (the map this pass ran with; the one the render reports)
+                ran_map, refine_info = pass_map, pass_info
+                kc = np.ones((h, w)) if ran_map is None else np.maximum(np.floor(ran_map), 1.0)
                 ks += kc[..., None] * r["sum"]
                 ks2 += kc[..., None] * r["sum_sq"]
                 kn += kc * k
@@ -569,5 +578,5 @@ def render(
     img = Image(rgb=mean.astype(np.float32), variance=var.astype(np.float32), spp=done,
                 stats=out_stats, class_sum=cls_sum, class_sum_sq=cls_sum2)
     if pixel_split_refine is not None:
-        img.pixel_split_map = pixel_split_map   # (the last one a pass ran with)
+        img.pixel_split_map = ran_map   # (the last one a pass that counts ran with)
     return img
