@@ -309,19 +309,30 @@ def test_sequence_epoch_salts_the_sobol_shifts_only(sphere):
     assert not same(run_pass(sphere, "path", 4, 9, **dkw), run_pass(sphere, "path", 4, 9, sequence_epoch=2, **dkw))
 
 
-def test_render_hands_the_refiner_its_k_weighted_sums(sphere):
+def test_render_hands_the_refiner_its_k_weighted_sums(sphere, monkeypatch):
     """render(pixel_split_refine=f) calls f before the passes at 4 and 8 spp
     of a 16-spp render (REFINE_FIRST, then doubling), with the sums of k s,
     k s^2 and k over the samples so far; the passes run with the map f
-    returns (counted extra samples), and the image reports it."""
-    calls = []
+    returns (counted extra samples), each refinement starting a new epoch of
+    the Sobol shifts with its offsets counted from 0, and the image reports
+    the map."""
+    calls, jobs = [], []
+    real = _core.RenderJob
+
+    def job(*a, **kw):   # (records each pass's sequence epoch and offset in it)
+        jobs.append((kw.get("sequence_epoch", 0), kw.get("sample_offset", 0)))
+        return real(*a, **kw)
 
     def refine(ks, ks2, kn, n):
         calls.append((ks.copy(), ks2.copy(), kn.copy(), n))
         return np.full((RES, RES), 2.0 + len(calls), np.float32), {"pixel_split_online_updates": len(calls)}
 
+    monkeypatch.setattr(_core, "RenderJob", job)
     img = mpg.render(sphere, "path", spp=16, seed=3, progress=False, pixel_split_refine=refine)
+    monkeypatch.setattr(_core, "RenderJob", real)
     assert [c[3] for c in calls] == [4, 8]
+    # passes of 1, 1, 2, 4, 8 spp: each refinement a new epoch, its offsets from 0
+    assert jobs == [(0, 0), (0, 1), (0, 2), (1, 0), (2, 0)]
     ks, ks2, kn, _ = calls[0]
     np.testing.assert_array_equal(kn, np.full((RES, RES), 4.0))     # 4 samples at k = 1
     assert np.all(ks2 >= 0)
@@ -348,7 +359,8 @@ def test_mpg_online_split_stays_unbiased(sphere, sphere32_path_ref):
     assert (st["pixel_split_online_fraction"], st["pixel_split_online_mean"]) != (
         st["pixel_split_fraction"], st["pixel_split_mean"])
     assert st["pixel_split_online_cost"] <= 1.1 + 1e-9
-    assert float(np.mean(img.pixel_split_map > 1)) == pytest.approx(st["pixel_split_online_fraction"])
+    k = img.pixel_split_map
+    assert float(0.0 if k is None else np.mean(k > 1)) == pytest.approx(st["pixel_split_online_fraction"])
     assert st["rejected_samples"] == 0
     assert image_zmax(img, sphere32_path_ref, REGIONS) < 5
     off = mpg.render(sphere, {"type": "mpg", "pixel_split_online": False}, spp=64, seed=2, progress=False)

@@ -156,7 +156,7 @@ void RenderJob::run() {
         for (int x = x0; x < x1; ++x) {
           const int fx = cam.crop_x + x, fy = cam.crop_y + y;
           const uint64_t pixel = uint64_t(fy) * uint64_t(cam.width) + uint64_t(fx);
-          const uint64_t shift = mix64(shift_key ^ pixel);  // from the seed and pixel only
+          const uint64_t shift = mix64(shift_key ^ pixel);  // from the seed, epoch and pixel only
           const uint64_t split_shift = split_sobol ? mix64(split_key ^ pixel) : 0;
           double s[3] = {0, 0, 0}, s2[3] = {0, 0, 0}, a[3] = {0, 0, 0}, a2[3] = {0, 0, 0}, hits = 0;
           double ds[3] = {0, 0, 0}, ds2[3] = {0, 0, 0};

@@ -807,7 +807,8 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
     w V is averaged over the (2 radius + 1)^2 window. This is adaptive
     sampling with a map fixed before the render: any fixed k >= 1 leaves the
     image unbiased, and where training saw no variance k = 1 (a firefly no
-    training sample saw is not split).
+    training sample saw is not split; PixelSplitRefiner then learns it again
+    from the render's own samples).
 
     branched (the delta split's extra paths are branched, delta_branch > 0,
     and a split sample leaves its own delta part out; one bool or

@@ -827,7 +827,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     img.chain_rate_map = qmap
     img.delta_split_map = kmap
     img.delta_branch_map = bmap
-    st["pixel_split"] = str(psplit) if (smap is not None or img.pixel_split_map is not None) else "off"
+    # (on where any pass split: the training's map, or a refined one)
+    st["pixel_split"] = str(psplit) if (smap is not None or st.get("pixel_split_samples", 0) > 0) else "off"
     if refiner is None:
         img.pixel_split_map = smap   # (refined: render() set the last one)
     return img

@@ -319,7 +319,7 @@ def render(
       <sampler> (independent, or stratified for stratified/multijitter/
       ldsampler/orthogonal/low_discrepancy). Stratified positions are points of
       a per-pixel randomly shifted Sobol (0,2)-sequence continued across the
-      passes: each sample is still unbiased, only a pixel's samples are
+      passes (of one sequence epoch: pixel_split_refine starts new ones): each sample is still unbiased, only a pixel's samples are
       correlated, so the image's `variance` channel (from the samples' spread)
       then usually over-estimates the variance of the pixel means where the
       positions matter (not guaranteed: design-notes).
