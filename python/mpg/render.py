@@ -346,8 +346,8 @@ def render(
         then twice the n of its last call; ks / ks2 are the per-pixel sums of k s and
         k s^2 over the samples s so far (k the split each ran at), kn of k.
         mpg's chain_rates.PixelSplitRefiner.update: the map it returns (None: no split)
-        runs from that pass on (the image stays unbiased, design-notes "Splitting the
-        pixels"), and each call starts a new epoch of the pixels' Sobol sequences
+        runs from that pass on (the image stays unbiased, design-notes "The pixel split
+        refined by the render's own samples"), and each call starts a new epoch of the pixels' Sobol sequences
         (RenderJob's sequence_epoch: fresh shifts, sample_offset from 0), so no later
         film position is a function of a shift the earlier samples depended on.
     """
