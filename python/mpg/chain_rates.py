@@ -824,11 +824,10 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
     clamp(rint(s sqrt(...)), 1, k_max) with the fixed point's image means
     and the largest s in (0, 1] (bisection) that keeps the cost at or below
     it."""
-    shape = acc.delta_rays.shape
     if acc.n < 2:
-        return np.ones(shape, dtype=np.float32), {}
-    w, v, c = _pixel_split_model(acc, q, kd, radius, objective, branched)
-    return _solve_pixel_split(_box_blur(w * v, radius), c, k_max, iterations, where, max_cost)
+        return np.ones(acc.delta_rays.shape, dtype=np.float32), {}
+    return PixelSplitRefiner(acc, q, kd, radius=radius, objective=objective, k_max=k_max, iterations=iterations,
+                             where=where, branched=branched, max_cost=max_cost).solve()
 
 
 def _pixel_split_model(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radius: int, objective: str,
@@ -908,7 +907,8 @@ def split_sample_variance(ks: np.ndarray, ks2: np.ndarray, kn: np.ndarray, n: in
 
 class PixelSplitRefiner:
     """The pixel split refined between the render's passes by its own samples
-    (design-notes "Splitting the pixels").
+    (design-notes "The pixel split refined by the render's own samples");
+    `solve()` alone is learn_pixel_split's map from the training.
 
     The training's model of a sample's variance V at the render's maps misses
     what no training sample saw: after a training of 3 spp the few pixels
@@ -923,7 +923,8 @@ class PixelSplitRefiner:
     fixes. (Each update starts a new epoch of the pixels' Sobol sequences in
     the render, whose shifts the earlier samples never saw.)"""
 
-    def __init__(self, acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radius: int = 1, objective: str = "mse", k_max: int = PIXEL_SPLIT_MAX, iterations: int = 30,
+    def __init__(self, acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radius: int = 1,
+                 objective: str = "mse", k_max: int = PIXEL_SPLIT_MAX, iterations: int = 30,
                  where: np.ndarray | None = None, branched: bool | np.ndarray = False,
                  max_cost: float | None = None):
         if acc.n < 2:
@@ -932,8 +933,12 @@ class PixelSplitRefiner:
         self.n_t = float(acc.n)
         self.radius, self.k_max, self.iterations = radius, k_max, iterations
         self.where, self.max_cost = where, max_cost
-        self.k: np.ndarray | None = None   # the last map update() solved
         self.updates = 0
+
+    def solve(self, v: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+        """Eq. 4's map (capped) for a sample's variance v per pixel (None: the training's model)."""
+        return _solve_pixel_split(_box_blur(self.w * (self.v if v is None else v), self.radius), self.c,
+                                  self.k_max, self.iterations, self.where, self.max_cost)
 
     def update(self, ks: np.ndarray, ks2: np.ndarray, kn: np.ndarray, n: int) -> tuple[np.ndarray | None, dict]:
         """The map for the next passes (None: no pixel split) from the render's n spp so far: per pixel
@@ -941,12 +946,10 @@ class PixelSplitRefiner:
         the count each ran at; split_sample_variance)."""
         if n < 2:
             raise ValueError("the pixel split's refinement needs at least 2 samples of the render")
-        v = (self.n_t * self.v + n * split_sample_variance(ks, ks2, kn, n)) / (self.n_t + n)
-        self.k, info = _solve_pixel_split(_box_blur(self.w * v, self.radius), self.c, self.k_max,
-                                          self.iterations, self.where, self.max_cost)
+        k, info = self.solve((self.n_t * self.v + n * split_sample_variance(ks, ks2, kn, n)) / (self.n_t + n))
         self.updates += 1
         # (the render's stats: beside the training's pixel_split_* of the map it started with)
-        return (self.k if np.any(self.k > 1.0) else None), {"pixel_split_online_updates": self.updates,
+        return (k if np.any(k > 1.0) else None), {"pixel_split_online_updates": self.updates,
                         "pixel_split_online_fraction": info["pixel_split_fraction"],
                         "pixel_split_online_mean": info["pixel_split_mean"],
                         "pixel_split_online_cost": info["pixel_split_cost"],

@@ -19,7 +19,7 @@ import numpy as np
 
 from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, JOINT_MIN_SAMPLES, PHOTON_PILOT, STEP_COST, CostAccumulator,
                              _sample_variance, guided_trace_map, learn_delta_split, learn_photon_rate,
-                             learn_pixel_split, learn_rates, PixelSplitRefiner, learn_jointly, learn_rates_traced,
+                             learn_rates, PixelSplitRefiner, learn_jointly, learn_rates_traced,
                              delta_split_effect)
 from mpg.errors import RenderError
 
@@ -726,11 +726,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         split_kw = dict(objective="mse" if psplit == "handoff" else psplit,
                         where=(rates() <= 0.0) if psplit == "handoff" else None,
                         branched=branch_where(), max_cost=psplit_cap)
-        smap = learned(*learn_pixel_split(costs, rates(), kmap if kmap is not None else uniform(1),
-                                          **split_kw))
+        splitter = PixelSplitRefiner(costs, rates(), kmap if kmap is not None else uniform(1), **split_kw)
+        smap = learned(*splitter.solve())   # (learn_pixel_split's map)
         if psplit_online and (split_kw["where"] is None or np.any(split_kw["where"])):
-            # refined between the render's passes by its own samples (PixelSplitRefiner)
-            refiner = PixelSplitRefiner(costs, rates(), kmap if kmap is not None else uniform(1), **split_kw)
+            refiner = splitter   # refined between the render's passes by its own samples
     elif isinstance(psplit, int) and psplit > 1:
         smap = uniform(psplit)
         rate_info.update(pixel_split_fraction=1.0, pixel_split_mean=float(psplit))

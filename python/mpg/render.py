@@ -414,8 +414,7 @@ def render(
     epoch, epoch_start = 0, 0   # (RenderJob's sequence_epoch and the spp when it began)
     if pixel_split_refine is not None:
         ks, ks2, kn = np.zeros((h, w, 3)), np.zeros((h, w, 3)), np.zeros((h, w))
-        new_map, new_info = pixel_split_map, {}
-        ran_map = pixel_split_map
+        pending_info, ran_map = {}, pixel_split_map   # (the newest solve's stats; the map a counted pass ran with)
     # Ctrl-C (and SIGTERM where a caller such as mpg-render maps it to an
     # interrupt) sets a flag the loop checks, instead of raising wherever it
     # lands: a KeyboardInterrupt between two passes (creating a job, adding a
@@ -434,7 +433,7 @@ def render(
                 break
             if pixel_split_refine is not None and done >= refine_at:
                 # (before the pass is sized: its time comes off what is left)
-                new_map, new_info = pixel_split_refine(ks, ks2, kn, done)
+                pixel_split_map, pending_info = pixel_split_refine(ks, ks2, kn, done)
                 refine_at = 2 * done
                 # a new epoch of the Sobol sequences: fresh shifts, counted from 0
                 epoch, epoch_start = epoch + 1, done
@@ -449,8 +448,6 @@ def render(
                 if spp is None:
                     # (before the first pass: the caller's estimate)
                     k = time_limited_pass_spp(k, left, time, pass_seconds_per_spp or hint)
-            if pixel_split_refine is not None:
-                pixel_split_map, pass_map, pass_info = new_map, new_map, new_info
             pass_t0 = _time.monotonic()
             try:
                 job = _core.RenderJob(core_scene, integ, k, seed, passes, threads or 0,
@@ -495,7 +492,7 @@ def render(
             acc2 += r["sum_sq"]
             if pixel_split_refine is not None:
                 # (the map this pass ran with; the one the render reports)
-                ran_map, refine_info = pass_map, pass_info
+                ran_map, refine_info = pixel_split_map, pending_info
                 kc = np.ones((h, w)) if ran_map is None else np.maximum(np.floor(ran_map), 1.0)
                 ks += kc[..., None] * r["sum"]
                 ks2 += kc[..., None] * r["sum_sq"]
