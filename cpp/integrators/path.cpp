@@ -38,6 +38,15 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   bool chain_prefix = true;
   // ... and, for the glints, every such vertex's BSDF a delta one (PathIntegrator::glint_path)
   bool glint_prefix = true;
+  // The chain rate at a separator: the pixel's, but in a pixel of rate 0
+  // (handed to the path tracer) chains_->handoff_deep() at its separators
+  // after the first (ChainParams::handoff_deep); sep_rate: the last
+  // separator's, which the path tracer's share of its chain paths uses
+  const float deep_rate = chains_ ? chains_->handoff_deep() : 0.f;
+  auto rate_here = [&]() -> float {
+    return st.pixel_chain_rate == 0.f && seps > 0 && deep_rate > 0.f ? deep_rate : st.pixel_chain_rate;
+  };
+  float sep_rate = st.pixel_chain_rate;
   const int lt_cam = lt_ ? lt_->camera_chain_max() : 0;
   const bool lt_area = lt_ && lt_->traces_area() && !lt_->glossy();
   // Glossy mode of the light tracer (no chain estimator): gl_n counts the
@@ -149,14 +158,18 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         // camera's first hit, whose chains to area lights are the photons'
         // (LightTracer::traces_area: seen directly only)
         if (!is_black(Le)) st.lt_pt_dropped++;
-      } else if (chains_ && chain_ok && !tau.empty() && st.pixel_chain_rate != 0.f &&
+      } else if (chains_ && chain_ok && !tau.empty() && sep_rate != 0.f &&
           chains_->owns(sep_depth, max_depth, tau) && chains_->active_for(sep_si.p, si.p, tau, &st, &leaf)) {
         // A path the chain estimator also produces: this side's share of it
         // (0 when the estimator takes it whole; design.md "No double counting").
         if (!is_black(Le)) {
           bool whole = false;   // (record_classes: a light or length the estimator never produces)
+          // (the rate its separator ran the estimator at, which rate_b reads)
+          const float pixel_rate = st.pixel_chain_rate;
+          st.pixel_chain_rate = sep_rate;
           const float w = chains_->pt_weight(sep_si, sep_ctx, sep_depth, max_depth, chain_si.data(), tau, si,
                                              rng, st, beta * Le, &leaf, &whole);
+          st.pixel_chain_rate = pixel_rate;
           st.sample_alt_delta += beta * Le * (1.f - w);  // the path tracer alone keeps it whole
           st.sample_owned_hit = true;  // (w can round to 1 where the path tracer's density dominates)
           trace_alt_hit(si, beta * Le, w);
@@ -168,7 +181,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
             st.owned_dropped++;
           }
         }
-      } else if (chains_ && chain_ok && !tau.empty() && sep_first && st.pixel_chain_rate == 0.f &&
+      } else if (chains_ && chain_ok && !tau.empty() && sep_first && sep_rate == 0.f &&
                  trace_k > 0 && chains_->guided_trace_on()) {
         // A handed-off pixel's chain path: shared with the guided trace by the
         // balance heuristic (ChainEstimator::guided_trace)
@@ -185,7 +198,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         add(beta * Le * w);
         if (chain_ok && !tau.empty() && st.record_classes) {
           // why the estimator does not take it (active_for filled `leaf` if it ran)
-          const int c = st.pixel_chain_rate == 0.f ? Stats::kClassHanded
+          const int c = sep_rate == 0.f ? Stats::kClassHanded
                         : !leaf.done                ? Stats::kClassUnowned
                         : leaf.leaf                 ? Stats::kClassUnseen
                                                     : Stats::kClassInactive;
@@ -244,6 +257,10 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
       // the estimator's otherwise. q = 0: the pixel's chain light is the path
       // tracer's whole (above); the same for every sample of the pixel, so
       // each path is counted once.
+      // (the estimator reads the rate from st: rate_here's for this separator)
+      const float pixel_rate = st.pixel_chain_rate;
+      st.pixel_chain_rate = rate_here();
+      if (pixel_rate == 0.f && st.pixel_chain_rate > 0.f) st.chain_deep++;
       const float q = chains_->rate_at(st);
       // the camera's first hit, whose area-light chains are the photons'
       const bool lt_first = lt_area && depth == 0;
@@ -290,6 +307,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
         }
         st.trace_rays += st.rays - r0;
       }
+      st.pixel_chain_rate = pixel_rate;
     }
 
     // BSDF sampling.
@@ -312,6 +330,7 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
     if (chains_) {
       if (separator) {
         sep_depth = depth;
+        sep_rate = rate_here();
         sep_first = seps == 0;
         sep_wo = wo;
         rr_sep = 1.0;

@@ -99,6 +99,12 @@ struct ChainParams {
   // chain, combined with the BSDF-sampled paths by the balance heuristic, k g
   // against b (design-notes, "The guided trace of handed-off pixels").
   int handoff_guided = 0;
+  // ... and at the separators after a path's first in such pixels, the chain
+  // estimator at this rate (0: none, the path tracer's there too). The
+  // hand-off is learned for the first separator; a later one is reached by
+  // few samples, whose chain paths the path tracer finds rarely and, after
+  // the roulette, with a throughput near 1 (double_slabs' handed pixels).
+  float handoff_deep = 0.f;
   bool record = false;             // store SubpathSamples in Stats::subpaths
   bool count_limits = false;       // Stats::limit_m2 / limit_steps (mpg's training, step_halvings=auto)
   bool product = false;            // product sampling with the separator's BSDF (MPG Eq. 14)
@@ -290,6 +296,7 @@ class ChainEstimator {
   // ... and its weight b / (b + k g) against k traces (1 where false above).
   static float guided_trace_pt_weight(bool shared, double b, double g, int k);
   int handoff_guided() const { return p_.handoff_guided; }
+  float handoff_deep() const { return p_.handoff_deep; }
 
   // Test entry point: the densities a (estimator, without P) and b (path
   // tracer) of one path as each side computes them. The path tracer's path

@@ -202,6 +202,7 @@ struct Stats {
   uint64_t chain_inactive = 0;       // separators skipped by selective activation
   uint64_t chain_skipped = 0;        // separators skipped by the roulette (chain_rate < 1)
   uint64_t chain_handed = 0;         // separators in pixels of rate 0 (the path tracer's light whole)
+  uint64_t chain_deep = 0;           // ... of which later than a path's first, estimated at handoff_deep
   // light tracing (integrators/light_trace.h)
   uint64_t chain_lt_skipped = 0;     // chain estimates whose point/spot light the light tracer takes (value 0)
   uint64_t lt_photons = 0, lt_rays = 0, lt_splats = 0;
@@ -249,6 +250,7 @@ struct Stats {
     chain_inactive += o.chain_inactive;
     chain_skipped += o.chain_skipped;
     chain_handed += o.chain_handed;
+    chain_deep += o.chain_deep;
     chain_lt_skipped += o.chain_lt_skipped;
     lt_pt_dropped += o.lt_pt_dropped;
     glint_seeds += o.glint_seeds; glint_walks += o.glint_walks; glint_found += o.glint_found;
@@ -288,7 +290,7 @@ struct Stats {
             {"guided_trials", double(guided_trials)}, {"trials_tau_cut", double(trials_tau_cut)},
             {"chain_inactive", double(chain_inactive)}, {"chain_unknown_type", double(chain_unknown_type)},
             {"chain_skipped", double(chain_skipped)},
-            {"chain_handed", double(chain_handed)},
+            {"chain_handed", double(chain_handed)}, {"chain_deep", double(chain_deep)},
             {"chain_lt_skipped", double(chain_lt_skipped)},
             {"lt_pt_dropped", double(lt_pt_dropped)},
             {"glint_seeds", double(glint_seeds)}, {"glint_walks", double(glint_walks)},

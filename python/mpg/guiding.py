@@ -96,6 +96,10 @@ KNOWN_TYPES = True
 # 1.21x lower with 1, 1.32x with 4, 16 worse than 4 (docs/results.md,
 # fourteenth session).
 HANDOFF_GUIDED = 4
+# Render passes: in pixels handed to the path tracer, the chain estimator at
+# this rate at every separator after a path's first (design-notes "The later
+# separators of handed-off pixels"; 0: the path tracer's there too).
+HANDOFF_DEEP = 1.0
 # The hand-off (rate 0, chain_handoff) needs this many training spp unless it
 # is asked for: with fewer, the window's estimate of the path tracer's
 # variance has not seen its tail and the hand-off loses the caustic. Sphere,
@@ -396,6 +400,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # training never saw"); training passes keep every type, to find them
     params["known_types"] = _as_bool("known_types", params.pop("known_types", KNOWN_TYPES))
     params["handoff_guided"] = int(params.pop("handoff_guided", HANDOFF_GUIDED))
+    params["handoff_deep"] = float(params.pop("handoff_deep", HANDOFF_DEEP))
     # learn_trace: the training passes also record each sample's value with the
     # guided trace (Stats::record_trace), and the learned rates choose per pixel
     # between the path tracer alone and the path tracer with the trace at rate

@@ -35,7 +35,7 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff",
                 "chain_handoff_negligible",
                 "delta_split", "pixel_split", "pixel_split_max_cost", "pixel_split_online", "limit_in_training", "known_types",
-                "handoff_guided", "learn_trace", "trace_tails", "joint_maps",
+                "handoff_guided", "handoff_deep", "learn_trace", "trace_tails", "joint_maps",
                 "trace_min_hits", "joint_min_samples", "delta_plain"}
 BOOL_PARAMS = {"hide_emitters", "delta_split_sobol", "light_trace_through", "light_trace_area", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "mis_rate", "chain_handoff", "limit_in_training", "known_types",
@@ -124,7 +124,7 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
               "guide_fraction", "training_guide_fraction", "training_fraction", "stree_c",
               "stree_epsilon", "chain_rate",
               "chain_rate_min", "chain_rate_train", "chain_handoff_negligible", "light_trace",
-              "light_trace_glossy", "glints"):
+              "light_trace_glossy", "glints", "handoff_deep"):
         if k == "chain_rate" and name == "mpg" and str(core_params.get(k)).strip().lower() == "auto":
             if "guide" in core_params:
                 raise RenderError("chain_rate 'auto' is learned by mpg's training loop; "
