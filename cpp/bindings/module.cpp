@@ -301,8 +301,9 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
       cp.handoff_guided = get<int>(p, "handoff_guided", cp.handoff_guided);
       if (cp.handoff_guided < 0 || cp.handoff_guided > 64) throw std::invalid_argument("handoff_guided must be in 0..64");
       cp.handoff_deep = get<float>(p, "handoff_deep", cp.handoff_deep);
-      if (!(cp.handoff_deep >= 0.f && cp.handoff_deep <= 1.f))
-        throw std::invalid_argument("handoff_deep must be a chain rate in [0, 1] (0: off)");
+      if (!(cp.handoff_deep == 0.f || (cp.handoff_deep >= 1e-3f && cp.handoff_deep <= 1.f)))
+        throw std::invalid_argument("handoff_deep must be 0 (off) or a chain rate in [0.001, 1], got " +
+                                    std::to_string(cp.handoff_deep));
       cp.record = get<bool>(p, "record", false);
       cp.guide_n = get<bool>(p, "guide_n", true);
       cp.guide_tau = get<bool>(p, "guide_tau", true);
