@@ -1009,3 +1009,59 @@ def test_photon_rate_edges():
     bad[0, 0, 0] = np.inf
     r, info = learn_photon_rate(float("nan"), 10.0, s, bad, 1000, 5000.0, 0.25)
     assert np.isfinite(r) and all(np.isfinite(v) for v in info.values())
+
+
+def test_every_pixel_handed_off_stays_unbiased(scenes_dir):
+    """handoff_all's maps -- every pixel at rate 0 with two guided traces, the
+    estimator at the later separators (handoff_deep) -- agree with the path
+    tracer on a ceiling lit by the floor and its caustic (|z| < 5 on the
+    image and nine regions, p < 6e-7 each). With the path tracer keeping its
+    first separator's chain paths whole beside the traces (a double count)
+    it fails at z 6.7."""
+    sc = _ceiling_scene(scenes_dir)
+    guide = _trained_guide(sc)
+    ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
+    img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "handoff_guided": 2, "handoff_deep": 1,
+                                     "light_trace_area": False},
+                     spp=4096, seed=17, progress=False, chain_rate_map=np.zeros((24, 24), np.float32),
+                     guided_trace_map=np.full((24, 24), 2.0, np.float32))
+    st = img.stats
+    assert st["guided_traces"] > 0 and st["chain_handed"] > 0 and st["chain_deep"] > 0
+    assert st["rejected_samples"] == 0
+    assert image_zmax(img, ref, REGIONS_24) < 5
+
+
+def test_handoff_all_replaces_the_learned_maps_or_says_why_not(scenes_dir, monkeypatch):
+    """handoff_all = K: mpg's final render runs rate 0 and K traces in every
+    pixel (the learned maps otherwise: 0, the default). Bad values are clear
+    errors; where the hand-off cannot run (a fixed rate, no traces,
+    chain_handoff false) a warning says why and the render is the one
+    without it, bit for bit."""
+    import sys
+    R = sys.modules["mpg.render"]
+    seen = {}
+    real = R.render
+
+    def spy(scene, integrator=None, **kw):   # (the final render is the call with a rate map)
+        if kw.get("chain_rate_map") is not None:
+            seen.update(q=kw["chain_rate_map"], g=kw.get("guided_trace_map"))
+        return real(scene, integrator=integrator, **kw)
+    monkeypatch.setattr(R, "render", spy)
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
+    base = {"type": "mpg", "light_trace_area": False}
+    learned = mpg.render(sc, integrator=base, spp=48, seed=5, progress=False)
+    assert learned.stats["handoff_all"] == 0 and np.any(seen["q"] > 0)
+    handed = mpg.render(sc, integrator=dict(base, handoff_all=3), spp=48, seed=5, progress=False)
+    assert handed.stats["handoff_all"] == 3 and handed.stats["guided_traces"] > 0
+    assert np.all(seen["q"] == 0) and np.all(seen["g"] == 3)
+    assert not np.array_equal(learned.rgb, handed.rgb)
+    for bad in ("auto", -1, 2.5, 65, True):
+        with pytest.raises(mpg.RenderError, match="handoff_all"):
+            mpg.render(sc, integrator={"type": "mpg", "handoff_all": bad}, spp=4, progress=False)
+    for extra, why in (({"chain_rate": 0.5}, "learned rates"), ({"handoff_guided": 0}, "handoff_guided"),
+                       ({"chain_handoff": False}, "chain_handoff")):
+        kw = dict(base, **extra)
+        img = mpg.render(sc, integrator=dict(kw, handoff_all=2), spp=16, seed=1, progress=False)
+        assert any("handoff_all=2 is ignored" in w and why in w for w in img.stats["warnings"])
+        assert img.stats["handoff_all"] == 0
+        assert np.array_equal(img.rgb, mpg.render(sc, integrator=kw, spp=16, seed=1, progress=False).rgb)

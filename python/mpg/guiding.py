@@ -108,6 +108,12 @@ HANDOFF_DEEP = 1.0
 # 0.00043 / 0.00041, 20 s (127 spp) 0.000109 / 0.000144 (double_slabs at 20 s
 # 0.00104 / 0.00136; docs/results.md, thirtieth session).
 HANDOFF_MIN_TRAINING = 24
+# handoff_all: 0 renders the learned maps; K >= 1 hands every pixel to the
+# path tracer with K guided traces (double_slabs' seeds' variance 1.4-1.8x
+# lower at 2-10 s with 2; the sphere's relMSE 1.7x, chain_length_4's MSE 1.1x
+# and the pool's 3.8x higher), so 0 is the default; a pilot choosing between
+# the two was too noisy to gain (docs/results.md, thirty-fourth session)
+HANDOFF_ALL = 0
 # The training measures the guided trace, and the rates choose where it runs
 # (learn_trace; design-notes "The rates choose the guided trace") ...
 LEARN_TRACE = True
@@ -293,6 +299,19 @@ def _order_free_mean(w: np.ndarray) -> float:
     return float(np.sum(np.sort(np.asarray(w, dtype=np.float64))) / max(len(w), 1))
 
 
+def _handoff_all_param(v) -> int:
+    """handoff_all: a count of guided traces in 0..64, else a RenderError naming it."""
+    try:
+        if isinstance(v, (bool, np.bool_)):
+            raise TypeError
+        k = float(v)
+    except (TypeError, ValueError):
+        raise RenderError(f"handoff_all must be a count of guided traces in 0..64, got {v!r}") from None
+    if not (k == int(k) and 0 <= k <= 64):
+        raise RenderError(f"handoff_all must be a count of guided traces in 0..64, got {v!r}")
+    return int(k)
+
+
 def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
                seed: int, threads: int | None, progress: bool | None, sampler: str = "independent",
                record_classes: bool = False):
@@ -338,6 +357,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # chain_handoff: a pixel may get rate 0, the path tracer alone (mpg.chain_rates, Eq. 2)
     handoff_given = "chain_handoff" in params
     handoff = bool(params.pop("chain_handoff", True))
+    handoff_asked_off = not handoff
     handoff_asked = handoff_given and handoff   # (on whatever the training's length)
     # ... where the chains' second moment is below this fraction of the pixel's
     # own variance per sample (or the path tracer found their light often: mpg.chain_rates)
@@ -401,6 +421,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     params["known_types"] = _as_bool("known_types", params.pop("known_types", KNOWN_TYPES))
     params["handoff_guided"] = int(params.pop("handoff_guided", HANDOFF_GUIDED))
     params["handoff_deep"] = float(params.pop("handoff_deep", HANDOFF_DEEP))
+    # handoff_all: every pixel handed off with this many guided traces in
+    # place of the learned maps (design-notes "Every pixel handed off")
+    handoff_all = _handoff_all_param(params.pop("handoff_all", HANDOFF_ALL))
     # learn_trace: the training passes also record each sample's value with the
     # guided trace (Stats::record_trace), and the learned rates choose per pixel
     # between the path tracer alone and the path tracer with the trace at rate
@@ -772,6 +795,24 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         pass_hint = max(pass_hint, photon_info["seconds_photon_pilot"] / PHOTON_PILOT_SPP)
     if pass_hint is not None:
         pass_hint *= PASS_HINT_MARGIN
+    handoff_all_info: dict[str, Any] = {"handoff_all": handoff_all}
+    if handoff_all > 0:
+        why = None
+        if qmap is None:
+            why = "it replaces learned rates (chain_rate=auto, 2 or more training spp), and there are none"
+        elif probe.chains_delta_lights:
+            why = ("the scene has a point or spot chain light, which the path tracer cannot reach "
+                   "through a chain")
+        elif handoff_asked_off:
+            why = "chain_handoff is false"
+        elif params["handoff_guided"] <= 0:
+            why = "handoff_guided is 0 (no guided traces)"
+        if why is not None:
+            warnings.append(f"handoff_all={handoff_all} is ignored: {why}")
+            handoff_all_info["handoff_all"] = 0
+        else:   # (the learned maps' stats, chain_rate_*, stay: what the training chose)
+            qmap = np.zeros_like(qmap)
+            gmap = np.full(qmap.shape, float(handoff_all), dtype=np.float32)
     img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
                  chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap, sampler=sampler,
@@ -788,6 +829,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st.update(halvings_info)
     if auto_halvings:
         st["step_halvings_history"] = halvings_history   # the choice after each training iteration
+    st.update(handoff_all_info)
     st["chain_rate_mode"] = "per-pixel" if qmap is not None else "fixed"
     st["chain_handoff"] = handoff_note if qmap is not None else "off"
     # per-pixel: mean over the pixels with chain work; fixed: the rate used
