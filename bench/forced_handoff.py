@@ -7,7 +7,10 @@ maps mpg learned, in its final render only (the training is unchanged):
   trace_all_k=K  the learned rates, but K guided traces in every handed pixel.
 
 A measurement tool for the learned maps' choice (docs/results.md,
-thirty-third session, "Handing every pixel off"), not a renderer option:
+thirty-third session, "Handing every pixel off"). The renderer's option
+`handoff_all=K` (thirty-fourth session) does what force_k does, but before
+the pixel split, the traces' map and the photon pilot, which then see the
+handed maps; force_k replaces the maps of the final render call only:
 
     python bench/forced_handoff.py bench/ab_params.py double_slabs --time 2 --seeds 16 \\
         --variants '{}' '{"force_k": 4}' '{"force_k": 2}'

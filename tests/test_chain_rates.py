@@ -1033,7 +1033,8 @@ def test_every_pixel_handed_off_stays_unbiased(scenes_dir):
 
 def test_handoff_all_replaces_the_learned_maps_or_says_why_not(scenes_dir, monkeypatch):
     """handoff_all = K: mpg's final render runs rate 0 and K traces in every
-    pixel (the learned maps otherwise: 0, the default). Bad values are clear
+    pixel (the learned maps otherwise: 0, the default), also where the
+    training was too short for the per-pixel hand-off (48 spp here). Bad values are clear
     errors; where the hand-off cannot run (a fixed rate, no traces,
     chain_handoff false) a warning says why and the render is the one
     without it, bit for bit."""
@@ -1052,16 +1053,18 @@ def test_handoff_all_replaces_the_learned_maps_or_says_why_not(scenes_dir, monke
     learned = mpg.render(sc, integrator=base, spp=48, seed=5, progress=False)
     assert learned.stats["handoff_all"] == 0 and np.any(seen["q"] > 0)
     handed = mpg.render(sc, integrator=dict(base, handoff_all=3), spp=48, seed=5, progress=False)
-    assert handed.stats["handoff_all"] == 3 and handed.stats["guided_traces"] > 0
+    st = handed.stats
+    assert st["handoff_all"] == 3 and st["guided_traces"] > 0 and st["chain_handoff"] == "all: handoff_all=3"
+    assert st["guided_trace_fraction"] == 1.0 and not any("handoff_all" in w for w in st["warnings"])
     assert np.all(seen["q"] == 0) and np.all(seen["g"] == 3)
     assert not np.array_equal(learned.rgb, handed.rgb)
-    for bad in ("auto", -1, 2.5, 65, True):
+    for bad in ("auto", -1, 2.5, 65, True, "nan", float("inf")):
         with pytest.raises(mpg.RenderError, match="handoff_all"):
             mpg.render(sc, integrator={"type": "mpg", "handoff_all": bad}, spp=4, progress=False)
     for extra, why in (({"chain_rate": 0.5}, "learned rates"), ({"handoff_guided": 0}, "handoff_guided"),
                        ({"chain_handoff": False}, "chain_handoff")):
         kw = dict(base, **extra)
-        img = mpg.render(sc, integrator=dict(kw, handoff_all=2), spp=16, seed=1, progress=False)
+        img = mpg.render(sc, integrator=dict(kw, handoff_all=2), spp=48, seed=1, progress=False)
         assert any("handoff_all=2 is ignored" in w and why in w for w in img.stats["warnings"])
         assert img.stats["handoff_all"] == 0
-        assert np.array_equal(img.rgb, mpg.render(sc, integrator=kw, spp=16, seed=1, progress=False).rgb)
+        assert np.array_equal(img.rgb, mpg.render(sc, integrator=kw, spp=48, seed=1, progress=False).rgb)

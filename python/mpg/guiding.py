@@ -110,9 +110,10 @@ HANDOFF_DEEP = 1.0
 HANDOFF_MIN_TRAINING = 24
 # handoff_all: 0 renders the learned maps; K >= 1 hands every pixel to the
 # path tracer with K guided traces (double_slabs' seeds' variance 1.4-1.8x
-# lower at 2-10 s with 2; the sphere's relMSE 1.7x, chain_length_4's MSE 1.1x
-# and the pool's 3.8x higher), so 0 is the default; a pilot choosing between
-# the two was too noisy to gain (docs/results.md, thirty-fourth session)
+# lower at 2-20 s with 2; the sphere's relMSE 1.6-1.7x, chain_length_4's MSE
+# 1.1-1.2x and the pool's 3.8-4.0x higher), so 0 is the default; choosing
+# between the two per render (the model, a race, a pilot) did not gain
+# reliably (docs/results.md, thirty-fourth session)
 HANDOFF_ALL = 0
 # The training measures the guided trace, and the rates choose where it runs
 # (learn_trace; design-notes "The rates choose the guided trace") ...
@@ -307,7 +308,7 @@ def _handoff_all_param(v) -> int:
         k = float(v)
     except (TypeError, ValueError):
         raise RenderError(f"handoff_all must be a count of guided traces in 0..64, got {v!r}") from None
-    if not (k == int(k) and 0 <= k <= 64):
+    if not (0 <= k <= 64 and k.is_integer()):   # (NaN and inf fail the range)
         raise RenderError(f"handoff_all must be a count of guided traces in 0..64, got {v!r}")
     return int(k)
 
@@ -748,6 +749,28 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     if isinstance(split, int) and split > 1:
         kmap, bmap = uniform(split), None
         rate_info.update(delta_split_fraction=1.0, delta_split_mean=float(split))
+    # handoff_all: every pixel handed off, in place of the learned maps,
+    # decided before the pixel split, the traces' map and the photon pilot,
+    # which then see the maps the render runs; it overrides the hand-off's
+    # wait for HANDOFF_MIN_TRAINING (asked for explicitly)
+    handoff_all_info: dict[str, Any] = {"handoff_all": handoff_all}
+    if handoff_all > 0:
+        why = None
+        if qmap is None:
+            why = "it replaces learned rates (chain_rate=auto, 2 or more training spp), and there are none"
+        elif probe.chains_delta_lights:
+            why = ("the scene has a point or spot chain light, which the path tracer cannot reach "
+                   "through a chain")
+        elif handoff_asked_off:
+            why = "chain_handoff is false"
+        elif params["handoff_guided"] <= 0:
+            why = "handoff_guided is 0 (no guided traces)"
+        if why is not None:
+            warnings.append(f"handoff_all={handoff_all} is ignored: {why}")
+            handoff_all_info["handoff_all"] = 0
+        else:   # (the learned maps' summary, chain_rate_*, stays: what the training chose)
+            qmap = np.zeros_like(qmap)
+            handoff_note = f"all: handoff_all={handoff_all}"
     smap = None
     refiner = None
     if psplit in ("mse", "relmse", "handoff") and costs is not None and costs.n >= 2:
@@ -767,7 +790,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     rest_spp = None if spp is None else max(1, spp - spp_train)
     rest_t = None if time is None else max(0.05, time - seconds_training)
     gmap = None
-    if params.get("handoff_guided") and qmap is not None and np.any(qmap <= 0.0):
+    if handoff_all_info["handoff_all"] > 0:
+        gmap = np.full(qmap.shape, float(handoff_all), dtype=np.float32)
+        rate_info.update(guided_trace_fraction=1.0, guided_trace_mean_k=float(handoff_all))
+    elif params.get("handoff_guided") and qmap is not None and np.any(qmap <= 0.0):
         if learn_trace and float(np.sum(costs.trace_rays)) > 0.0:
             # the training measured the trace: the rates chose where it pays
             gmap = tmap   # (its traces per pixel: 0 or one of chain_rates.TRACE_KS)
@@ -795,24 +821,6 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         pass_hint = max(pass_hint, photon_info["seconds_photon_pilot"] / PHOTON_PILOT_SPP)
     if pass_hint is not None:
         pass_hint *= PASS_HINT_MARGIN
-    handoff_all_info: dict[str, Any] = {"handoff_all": handoff_all}
-    if handoff_all > 0:
-        why = None
-        if qmap is None:
-            why = "it replaces learned rates (chain_rate=auto, 2 or more training spp), and there are none"
-        elif probe.chains_delta_lights:
-            why = ("the scene has a point or spot chain light, which the path tracer cannot reach "
-                   "through a chain")
-        elif handoff_asked_off:
-            why = "chain_handoff is false"
-        elif params["handoff_guided"] <= 0:
-            why = "handoff_guided is 0 (no guided traces)"
-        if why is not None:
-            warnings.append(f"handoff_all={handoff_all} is ignored: {why}")
-            handoff_all_info["handoff_all"] = 0
-        else:   # (the learned maps' stats, chain_rate_*, stay: what the training chose)
-            qmap = np.zeros_like(qmap)
-            gmap = np.full(qmap.shape, float(handoff_all), dtype=np.float32)
     img = render(scene, integrator=dict(params, type="mpg", guide=guide, record=False),
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
                  chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap, sampler=sampler,
