@@ -302,13 +302,8 @@ def _order_free_mean(w: np.ndarray) -> float:
 
 def _handoff_all_param(v) -> int:
     """handoff_all: a count of guided traces in 0..64, else a RenderError naming it."""
-    try:
-        if isinstance(v, (bool, np.bool_)):
-            raise TypeError
-        k = float(v)
-    except (TypeError, ValueError):
-        raise RenderError(f"handoff_all must be a count of guided traces in 0..64, got {v!r}") from None
-    if not (0 <= k <= 64 and k.is_integer()):   # (NaN and inf fail the range)
+    k = _count_param("handoff_all", v)   # (a number >= 0; NaN fails it)
+    if not (k <= 64 and k.is_integer()):
         raise RenderError(f"handoff_all must be a count of guided traces in 0..64, got {v!r}")
     return int(k)
 
