@@ -1058,6 +1058,19 @@ def test_handoff_all_replaces_the_learned_maps_or_says_why_not(scenes_dir, monke
     assert st["guided_trace_fraction"] == 1.0 and not any("handoff_all" in w for w in st["warnings"])
     assert np.all(seen["q"] == 0) and np.all(seen["g"] == 3)
     assert not np.array_equal(learned.rgb, handed.rgb)
+    # the pixel split is learned for the handed maps (and pixel_split=handoff
+    # splits, with no "no split" warning of the hand-off's wait)
+    import mpg.guiding as G
+    split_q = []
+    real_split = G.PixelSplitRefiner
+
+    def split_spy(acc, q, *a, **kw):
+        split_q.append(np.array(q))
+        return real_split(acc, q, *a, **kw)
+    monkeypatch.setattr(G, "PixelSplitRefiner", split_spy)
+    ps = mpg.render(sc, integrator=dict(base, handoff_all=2, pixel_split="handoff"), spp=48, seed=5, progress=False)
+    assert split_q and np.all(split_q[-1] == 0)
+    assert not any("pixel_split=handoff" in w for w in ps.stats["warnings"])
     for bad in ("auto", -1, 2.5, 65, True, "nan", float("inf")):
         with pytest.raises(mpg.RenderError, match="handoff_all"):
             mpg.render(sc, integrator={"type": "mpg", "handoff_all": bad}, spp=4, progress=False)

@@ -766,6 +766,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         else:   # (the learned maps' summary, chain_rate_*, stays: what the training chose)
             qmap = np.zeros_like(qmap)
             handoff_note = f"all: handoff_all={handoff_all}"
+            # (pixel_split=handoff does split now, every pixel: not the wait's "no split")
+            warnings[:] = [w for w in warnings if not w.startswith("pixel_split=handoff splits the pixels")]
     smap = None
     refiner = None
     if psplit in ("mse", "relmse", "handoff") and costs is not None and costs.n >= 2:
