@@ -98,6 +98,17 @@ def test_integrator_parameters_on_the_command_line(tmp_path):
     assert r.returncode == 1 and "tau" in r.stderr
 
 
+def test_mpg_summary_names_handoff_all(tmp_path, scenes_dir):
+    """With -P handoff_all=K the summary says every pixel was handed off, not
+    the learned rates the render did not use."""
+    scene = str(scenes_dir / "sphere_glass.xml")
+    r = run([scene, "-D", "res=16", "--integrator", "mpg", "-P", "handoff_all=2", "--spp", "24",
+             "-o", str(tmp_path / "m.exr")])
+    assert r.returncode == 0, r.stderr
+    assert "every pixel handed to the path tracer with 2 guided traces" in r.stderr
+    assert "chain rates per pixel" not in r.stderr
+
+
 def test_mpg_summary_and_chain_rate_map(tmp_path, scenes_dir):
     """mpg-render names what mpg learned and writes its per-pixel chain rates as
     a grey PNG (log2 scale: 1/32 black, 1 white); without learned rates it says

@@ -153,7 +153,9 @@ def _run(args) -> int:
               + f": {img.spp} spp, {st['seconds']:.2f} s, "
               f"{st['samples_per_second'] / 1e6:.2f} M samples/s{state}", file=sys.stderr)
         if st.get("integrator") == "mpg" and st.get("training_iterations", 0) > 0:
-            rates = (f"chain rates per pixel: mean {st['chain_rate_mean']:.3f}, "
+            rates = (f"every pixel handed to the path tracer with {st['handoff_all']} guided traces "
+                     f"(handoff_all; the learned rates not used)" if st.get("handoff_all", 0) > 0 else
+                     f"chain rates per pixel: mean {st['chain_rate_mean']:.3f}, "
                      f"{100 * st['chain_rate_fraction_one']:.0f} % at 1, "
                      f"{100 * st.get('chain_rate_fraction_pt', 0.0):.0f} % to the path tracer"
                      + (f" ({100 * st['chain_rate_fraction_trace']:.0f} % with guided traces, "
