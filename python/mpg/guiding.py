@@ -700,12 +700,13 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         """The render's chain rates per pixel: the learned map, or the one rate."""
         return qmap if qmap is not None else uniform(params["chain_rate"])
 
+    split_wait_warning = None   # (said after handoff_all's choice, which splits every pixel)
     if handoff and not handoff_now():
         handoff = False
         handoff_note = f"off: {costs.n} training spp, fewer than {HANDOFF_MIN_TRAINING}"
         if psplit == "handoff":
-            warnings.append(f"pixel_split=handoff splits the pixels handed to the path tracer, and the "
-                            f"hand-off is {handoff_note} (chain_handoff=true keeps it); no split")
+            split_wait_warning = (f"pixel_split=handoff splits the pixels handed to the path tracer, and the "
+                                  f"hand-off is {handoff_note} (chain_handoff=true keeps it); no split")
         if asked_hits and learn_trace and params["handoff_guided"] > 0:
             warnings.append(f"trace_min_hits applies where the hand-off runs, and it is {handoff_note} "
                             f"(chain_handoff=true keeps it); ignored")
@@ -766,8 +767,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         else:   # (the learned maps' summary, chain_rate_*, stays: what the training chose)
             qmap = np.zeros_like(qmap)
             handoff_note = f"all: handoff_all={handoff_all}"
-            # (pixel_split=handoff does split now, every pixel: not the wait's "no split")
-            warnings[:] = [w for w in warnings if not w.startswith("pixel_split=handoff splits the pixels")]
+    if split_wait_warning is not None and handoff_all_info["handoff_all"] == 0:
+        warnings.append(split_wait_warning)
     smap = None
     refiner = None
     if psplit in ("mse", "relmse", "handoff") and costs is not None and costs.n >= 2:
