@@ -1,0 +1,242 @@
+"""`mpg`'s learned maps held fixed: train once, then render the final pass
+again and again with the same guide and maps (new seeds), and with variants
+of the maps, to see where in the image a choice of the maps pays -- the
+per-sample variance of each group of pixels (the pixels the maps gave the
+chain estimator, the path tracer alone, the path tracer with guided traces)
+under each variant, and each variant's time. An equal-time A/B
+(bench/ab_params.py) retrains per seed and mixes the training's noise into
+its answer; here the training is one, so a map's effect is measured apart
+from how well the training chose it (docs/results.md, thirty-fifth
+session).
+
+    python bench/fixed_maps.py double_slabs --time 10 --spp 32 --seeds 12 \\
+        --variants learned all2 all0 est1 est-traced2 pt-traced2
+
+Variants (q the learned rates, g the learned guided traces of rate-0 pixels):
+  learned        the maps as learned
+  all<K>         every pixel at rate 0 with K guided traces (handoff_all=K's maps)
+  est1           the pixels at a rate q > 0 at rate 1
+  est-traced<K>  the pixels at a rate q > 0 at rate 0 with K guided traces
+  pt-traced<K>   the pixels at rate 0 without traces given K traces
+
+The training is `mpg.render(scene, mpg with --params, time=--time, seed=0)`;
+its final render call's arguments are kept (guide, maps, sampler) and called
+again with --spp samples and seeds 1000 + i, without a time limit. The
+pixel split is learned per variant from its rates and refined between the
+passes by the render's own samples, as the render does (a fresh refiner per
+render; --no-online-split: the variant keeps the training's first split map).
+The variants run interleaved per seed (the order rotated), so a drift of the
+machine's speed falls on all alike. Per-sample variance: --spp times the
+seeds' sample variance of a pixel's mean, mean over RGB (a split pixel's
+sample is the mean of its k camera samples); "weighted" weighs each pixel by
+1 / (I^2 + 0.01) with I the training's blurred mean, as the maps' relMSE
+objective does. "Efficiency" is the image's mean per-sample variance times
+the render's median seconds (lower is better; a ratio of two holds at equal
+time). Writes JSON (--out; default bench/results/fixed_maps-<scene>.json).
+
+It measures the maps at one training's guide and over --seeds x --spp
+samples: where the error is a few rare large values (the traces' in dark
+pixels), that can miss what an equal-time A/B over retrained seeds sees
+(docs/results.md, thirty-fifth session: the sphere's estimator pixels handed
+to two traces gained 1.7x here and 1.1x in MSE, with 1.5x the relMSE, at
+equal time)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import re
+import shlex
+import statistics
+import sys
+import time
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+VARIANT = re.compile(r"^(learned|est1|all(\d+)|est-traced(\d+)|pt-traced(\d+))$")
+
+
+def variant_maps(name: str, q: np.ndarray, g: np.ndarray) -> dict:
+    """The render call's map arguments that a variant replaces."""
+    m = VARIANT.match(name)
+    if m is None:
+        raise ValueError(name)
+    f32 = np.float32
+    if name == "learned":
+        return {}
+    if name == "est1":
+        return {"chain_rate_map": np.where(q > 0, 1.0, q).astype(f32)}
+    if m.group(2) is not None:
+        return {"chain_rate_map": np.zeros_like(q, dtype=f32),
+                "guided_trace_map": np.full(q.shape, float(m.group(2)), dtype=f32)}
+    if m.group(3) is not None:
+        k = float(m.group(3))
+        return {"chain_rate_map": np.where(q > 0, 0.0, q).astype(f32),
+                "guided_trace_map": np.where(q > 0, k, g).astype(f32)}
+    k = float(m.group(4))
+    return {"guided_trace_map": np.where((q <= 0) & (g <= 0), k, g).astype(f32)}
+
+
+def main() -> int:
+    import mpg
+    import mpg.guiding  # noqa: F401  (its module, below)
+    from mpg import chain_rates
+    from pixel_errors import add_param_option, load_scene, scene_params   # bench/, the script's own folder
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scene")
+    ap.add_argument("--time", type=float, default=10.0, help="the training render's budget (s)")
+    ap.add_argument("--params", default="{}", metavar="JSON", help="mpg parameters of the training render")
+    ap.add_argument("--spp", type=int, default=32, help="samples per pixel of each fixed-map render")
+    ap.add_argument("--seeds", type=int, default=8, help="renders per variant")
+    ap.add_argument("--variants", nargs="+", default=["learned", "all2"], metavar="NAME")
+    ap.add_argument("--no-online-split", action="store_true",
+                    help="keep the pixel split's first map (no refinement between the passes)")
+    add_param_option(ap)
+    ap.add_argument("--out", help="results file (default bench/results/fixed_maps-<scene>.json)")
+    args = ap.parse_args()
+    if not args.time > 0:
+        ap.error("--time must be > 0")
+    if args.spp < 1 or args.seeds < 2:
+        ap.error("--spp must be >= 1 and --seeds >= 2 (a variance)")
+    bad = [v for v in args.variants if not VARIANT.match(v)]
+    if bad:
+        ap.error(f"unknown variant {bad[0]!r}: learned, all<K>, est1, est-traced<K>, pt-traced<K>")
+    try:
+        params = json.loads(args.params)
+    except json.JSONDecodeError as e:
+        ap.error(f"--params is not JSON: {e}")
+    if not isinstance(params, dict) or "type" in params:
+        ap.error("--params must be a JSON object of mpg parameters without 'type'")
+    loaded = load_scene(args.scene, scene_params(ap, args), "fixed_maps")
+    if loaded is None:
+        return 1
+    sc = loaded[1]
+
+    # The training: the final render call's arguments and the training's records.
+    render_mod = sys.modules["mpg.render"]
+    guiding = sys.modules["mpg.guiding"]
+    seen: dict = {}
+    real_render = render_mod.render
+    real_add = chain_rates.CostAccumulator.add
+
+    def spy_render(scene, integrator=None, **kw):
+        if kw.get("chain_rate_map") is not None and "kw" not in seen:
+            seen["kw"], seen["integrator"] = dict(kw), integrator
+        return real_render(scene, integrator=integrator, **kw)
+
+    def spy_add(acc, result, spp, q):
+        seen["acc"] = acc
+        return real_add(acc, result, spp, q)
+
+    real_refiner = guiding.PixelSplitRefiner
+
+    class SpyRefiner(real_refiner):   # (the pixel split's arguments, to build it again per variant)
+        def __init__(self, acc, q, kd, **kw):
+            seen["refiner"] = (kd, kw)
+            super().__init__(acc, q, kd, **kw)
+
+    render_mod.render = spy_render   # (guiding.render_mpg imports it at call time)
+    chain_rates.CostAccumulator.add = spy_add
+    guiding.PixelSplitRefiner = SpyRefiner
+    try:
+        t0 = time.perf_counter()
+        trained = mpg.render(sc, dict(type="mpg", **params), time=args.time, seed=0, progress=False)
+        seconds_training_render = time.perf_counter() - t0
+    except mpg.RenderError as e:
+        print(f"fixed_maps: {e}", file=sys.stderr)
+        return 1
+    finally:
+        render_mod.render = real_render
+        chain_rates.CostAccumulator.add = real_add
+        guiding.PixelSplitRefiner = real_refiner
+    if "kw" not in seen or "acc" not in seen:
+        print("fixed_maps: the render learned no per-pixel maps (too short a training, or chain_rate "
+              "given, or no chain work in the scene)", file=sys.stderr)
+        return 1
+    kw = dict(seen["kw"])
+    online = kw.get("pixel_split_refine") is not None and "refiner" in seen and not args.no_online_split
+    kw.update(spp=args.spp, time=None, pixel_split_refine=None, progress=False, seconds_per_spp=None)
+    q = np.asarray(kw["chain_rate_map"], dtype=np.float32)
+    g = kw.get("guided_trace_map")
+    g = np.zeros_like(q) if g is None else np.asarray(g, dtype=np.float32)
+    acc = seen["acc"]
+    n = float(acc.n)
+    _, _, c1, _, _ = chain_rates._costs(acc, n)
+    has = chain_rates._box_blur(c1, 3) > 0.0   # (chain work in the pixel's window: the rates' own test)
+    weight = chain_rates._weights(chain_rates._finite(acc.sum) / n, "relmse", 3)
+    groups = {"estimator": has & (q > 0), "path tracer alone": has & (q <= 0) & (g <= 0),
+              "guided traces": has & (q <= 0) & (g > 0), "no chain work": ~has}
+
+    maps = {v: variant_maps(v, q, g) for v in args.variants}
+    for v, m in maps.items():
+        if online:
+            # The pixel split as the render learns it: from the variant's rates
+            # (its first map) and refined between the passes by the render's
+            # own samples (a fresh refiner per render: the same start each time)
+            kd, skw = seen["refiner"]
+            qv = m.get("chain_rate_map", q)
+            where = skw.get("where")
+            if where is not None:   # (pixel_split=handoff: the variant's rate-0 pixels)
+                skw = dict(skw, where=qv <= 0.0)
+            m["_refiner"] = (qv, kd, skw)
+            smap_v, _ = real_refiner(acc, qv, kd, **skw).solve()
+            m["pixel_split_map"] = smap_v if np.any(smap_v > 1) else None
+    imgs: dict[str, list[np.ndarray]] = {v: [] for v in args.variants}
+    secs: dict[str, list[float]] = {v: [] for v in args.variants}
+    nv = len(args.variants)
+    for i in range(args.seeds):
+        for j in range(nv):
+            v = args.variants[(i + j) % nv]
+            call = dict(kw)
+            call.update({k: x for k, x in maps[v].items() if not k.startswith("_")})
+            call["seed"] = 1000 + i
+            if "_refiner" in maps[v]:
+                qv, kd, skw = maps[v]["_refiner"]
+                call["pixel_split_refine"] = real_refiner(acc, qv, kd, **skw).update
+            t0 = time.perf_counter()
+            img = real_render(sc, integrator=seen["integrator"], **call)
+            secs[v].append(time.perf_counter() - t0)
+            imgs[v].append(np.asarray(img.rgb, dtype=np.float64))
+        print(f"fixed_maps: seed {i + 1}/{args.seeds}", file=sys.stderr, flush=True)
+
+    npix = q.size
+    result = {"command": shlex.join(["python", "bench/fixed_maps.py"] + sys.argv[1:]), "scene": args.scene,
+              "params": params, "time": args.time, "spp": args.spp, "seeds": args.seeds,
+              "training_spp": int(trained.stats.get("spp_training", 0)),
+              "seconds_training_render": seconds_training_render,
+              "online_pixel_split": online,
+              "group_fraction": {k: float(m.mean()) for k, m in groups.items()}, "variants": {}}
+    for v in args.variants:
+        a = np.stack(imgs[v])
+        var = a.var(axis=0, ddof=1).mean(axis=2) * args.spp   # a sample's variance (a split one: k camera samples')
+        sec = statistics.median(secs[v])
+        result["variants"][v] = {
+            "seconds_median": sec, "seconds": secs[v],
+            "variance": float(var.mean()), "variance_weighted": float((weight * var).mean()),
+            "efficiency": float(var.mean()) * sec, "efficiency_weighted": float((weight * var).mean()) * sec,
+            "group_variance": {k: float(var[m].sum() / npix) for k, m in groups.items()},
+            "group_variance_weighted": {k: float((weight * var)[m].sum() / npix) for k, m in groups.items()},
+        }
+    out = pathlib.Path(args.out) if args.out else ROOT / "bench" / "results" / f"fixed_maps-{pathlib.Path(args.scene).stem}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2))
+
+    base = result["variants"][args.variants[0]]
+    print(f"{args.scene}: training {result['training_spp']} spp; pixels: " +
+          ", ".join(f"{k} {f:.1%}" for k, f in result["group_fraction"].items()))
+    print(f"{'variant':14s} {'s/render':>9s} {'variance':>9s} {'effic.':>8s} {'vs ' + args.variants[0]:>9s}  "
+          "variance by group (weighted by group)")
+    for v, r in result["variants"].items():
+        gains = base["efficiency"] / r["efficiency"] if r["efficiency"] > 0 else float("inf")
+        by = ", ".join(f"{k} {x:.4g} ({r['group_variance_weighted'][k]:.4g})" for k, x in r["group_variance"].items())
+        print(f"{v:14s} {r['seconds_median']:9.3f} {r['variance']:9.4g} {r['efficiency']:8.4g} {gains:8.2f}x  {by}")
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+    sys.exit(main())
