@@ -1,45 +1,54 @@
 """`mpg`'s learned maps held fixed: train once, then render the final pass
 again and again with the same guide and maps (new seeds), and with variants
-of the maps, to see where in the image a choice of the maps pays -- the
-per-sample variance of each group of pixels (the pixels the maps gave the
-chain estimator, the path tracer alone, the path tracer with guided traces)
-under each variant, and each variant's time. An equal-time A/B
-(bench/ab_params.py) retrains per seed and mixes the training's noise into
-its answer; here the training is one, so a map's effect is measured apart
-from how well the training chose it (docs/results.md, thirty-fifth
-session).
+of the maps, to see what a choice of the maps does to the image's
+efficiency and where its variance moves -- the per-sample variance of each
+group of pixels (the pixels the maps gave the chain estimator, the path
+tracer alone, the path tracer with guided traces) under each variant, and
+each variant's time. An equal-time A/B (bench/ab_params.py) retrains per
+seed and mixes the training's noise into its answer; here the training is
+one, so a map's effect is measured apart from how well the training chose
+it (docs/results.md, thirty-fifth session).
 
     python bench/fixed_maps.py double_slabs --time 10 --spp 32 --seeds 12 \\
         --variants learned all2 all0 est1 est-traced2 pt-traced2
 
 Variants (q the learned rates, g the learned guided traces of rate-0 pixels):
   learned        the maps as learned
-  all<K>         every pixel at rate 0 with K guided traces (handoff_all=K's maps)
-  est1           the pixels at a rate q > 0 at rate 1
-  est-traced<K>  the pixels at a rate q > 0 at rate 0 with K guided traces
+  all<K>         every pixel at rate 0 with K guided traces (K >= 1:
+                 handoff_all=K's rate and trace maps; all0: no traces)
+  est1           the pixels with chain work at a rate q > 0 at rate 1
+  est-traced<K>  the same pixels at rate 0 with K guided traces
   pt-traced<K>   the pixels at rate 0 without traces given K traces
 
 The training is `mpg.render(scene, mpg with --params, time=--time, seed=0)`;
-its final render call's arguments are kept (guide, maps, sampler) and called
-again with --spp samples and seeds 1000 + i, without a time limit. The
-pixel split is learned per variant from its rates and refined between the
-passes by the render's own samples, as the render does (a fresh refiner per
-render; --no-online-split: the variant keeps the training's first split map).
-The variants run interleaved per seed (the order rotated), so a drift of the
-machine's speed falls on all alike. Per-sample variance: --spp times the
-seeds' sample variance of a pixel's mean, mean over RGB (a split pixel's
-sample is the mean of its k camera samples); "weighted" weighs each pixel by
-1 / (I^2 + 0.01) with I the training's blurred mean, as the maps' relMSE
-objective does. "Efficiency" is the image's mean per-sample variance times
-the render's median seconds (lower is better; a ratio of two holds at equal
-time). Writes JSON (--out; default bench/results/fixed_maps-<scene>.json).
+its final render call's arguments are kept (guide, maps, sampler, photon
+rate) and called again with --spp samples and seeds 1000 + i, without a time
+limit. Where the render learned a pixel split, each variant's is solved
+again from its own rates and refined between the passes by the render's own
+samples, as the render does (a fresh refiner per render; --no-online-split:
+no refinement). That split spreads the samples over the whole image, so a
+variant also moves the variance of pixels whose rates it keeps: the groups
+say where the variance is, the efficiency what the variant is worth. The
+photon rate stays the one learned for the learned maps (a `handoff_all`
+render learns its own), and a 32-spp render refines its split three times
+(at 4, 8 and 16 spp) where a long render goes on. The variants run
+interleaved per seed (the order rotated), so a drift of the machine's speed
+falls on all alike. Per-sample variance: --spp times the seeds' sample
+variance of a pixel's mean, mean over RGB (a split pixel's sample is the
+mean of its k camera samples); "weighted" weighs each pixel by 1 / (I^2 +
+0.01) with I the training's blurred mean, as the maps' relMSE objective
+does. "Efficiency" is the image's mean per-sample variance times the
+render's median seconds (lower is better; a ratio of two holds at equal
+time; each render's fixed overhead is in its seconds), unweighted and
+weighted. Writes JSON (--out; default bench/results/fixed_maps-<scene>.json).
 
 It measures the maps at one training's guide and over --seeds x --spp
-samples: where the error is a few rare large values (the traces' in dark
-pixels), that can miss what an equal-time A/B over retrained seeds sees
-(docs/results.md, thirty-fifth session: the sphere's estimator pixels handed
-to two traces gained 1.7x here and 1.1x in MSE, with 1.5x the relMSE, at
-equal time)."""
+samples a pixel: where the error is a few rare large values (the traces' in
+dark pixels), that can miss what an equal-time A/B over retrained seeds
+sees. Thirty-fifth session: the sphere's estimator pixels handed to two
+traces made the image 1.18x more efficient here (1.7x with a first version
+that kept the training's split map), 1.10x by the seeds' variance at equal
+time, with 1.5x the relMSE."""
 
 from __future__ import annotations
 
@@ -58,25 +67,34 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 VARIANT = re.compile(r"^(learned|est1|all(\d+)|est-traced(\d+)|pt-traced(\d+))$")
 
 
-def variant_maps(name: str, q: np.ndarray, g: np.ndarray) -> dict:
-    """The render call's map arguments that a variant replaces."""
+def variant_maps(name: str, q: np.ndarray, g: np.ndarray, chain: np.ndarray | None = None) -> dict:
+    """The render call's map arguments that a variant replaces. chain: the
+    pixels with chain work (None: all); the others keep their rate (1, which
+    the rates give a pixel without chain work) in `est1` and `est-traced<K>`."""
     m = VARIANT.match(name)
     if m is None:
         raise ValueError(name)
     f32 = np.float32
+    est = (q > 0) if chain is None else (q > 0) & chain
     if name == "learned":
         return {}
     if name == "est1":
-        return {"chain_rate_map": np.where(q > 0, 1.0, q).astype(f32)}
+        return {"chain_rate_map": np.where(est, 1.0, q).astype(f32)}
     if m.group(2) is not None:
         return {"chain_rate_map": np.zeros_like(q, dtype=f32),
                 "guided_trace_map": np.full(q.shape, float(m.group(2)), dtype=f32)}
     if m.group(3) is not None:
         k = float(m.group(3))
-        return {"chain_rate_map": np.where(q > 0, 0.0, q).astype(f32),
-                "guided_trace_map": np.where(q > 0, k, g).astype(f32)}
+        return {"chain_rate_map": np.where(est, 0.0, q).astype(f32),
+                "guided_trace_map": np.where(est, k, g).astype(f32)}
     k = float(m.group(4))
     return {"guided_trace_map": np.where((q <= 0) & (g <= 0), k, g).astype(f32)}
+
+
+def traces_of(name: str) -> int:
+    """The K of a variant's name (0 without one)."""
+    m = VARIANT.match(name)
+    return int(next((x for x in m.groups()[1:] if x is not None), 0)) if m else 0
 
 
 def main() -> int:
@@ -104,12 +122,19 @@ def main() -> int:
     bad = [v for v in args.variants if not VARIANT.match(v)]
     if bad:
         ap.error(f"unknown variant {bad[0]!r}: learned, all<K>, est1, est-traced<K>, pt-traced<K>")
+    if len(set(args.variants)) != len(args.variants):
+        ap.error("a variant is named twice")
+    big = [v for v in args.variants if traces_of(v) > 64]
+    if big:
+        ap.error(f"{big[0]}: at most 64 guided traces a pixel")
     try:
         params = json.loads(args.params)
     except json.JSONDecodeError as e:
         ap.error(f"--params is not JSON: {e}")
     if not isinstance(params, dict) or "type" in params:
         ap.error("--params must be a JSON object of mpg parameters without 'type'")
+    if str(params.get("handoff_guided", "")).strip() == "0" and any(traces_of(v) > 0 for v in args.variants):
+        ap.error("handoff_guided 0 switches the guided traces off: the variants with traces would run none")
     loaded = load_scene(args.scene, scene_params(ap, args), "fixed_maps")
     if loaded is None:
         return 1
@@ -158,6 +183,7 @@ def main() -> int:
         return 1
     kw = dict(seen["kw"])
     online = kw.get("pixel_split_refine") is not None and "refiner" in seen and not args.no_online_split
+    resolve_split = "refiner" in seen   # (a learned pixel split: solved again from each variant's rates)
     kw.update(spp=args.spp, time=None, pixel_split_refine=None, progress=False, seconds_per_spp=None)
     q = np.asarray(kw["chain_rate_map"], dtype=np.float32)
     g = kw.get("guided_trace_map")
@@ -170,9 +196,9 @@ def main() -> int:
     groups = {"estimator": has & (q > 0), "path tracer alone": has & (q <= 0) & (g <= 0),
               "guided traces": has & (q <= 0) & (g > 0), "no chain work": ~has}
 
-    maps = {v: variant_maps(v, q, g) for v in args.variants}
+    maps = {v: variant_maps(v, q, g, has) for v in args.variants}
     for v, m in maps.items():
-        if online:
+        if resolve_split:
             # The pixel split as the render learns it: from the variant's rates
             # (its first map) and refined between the passes by the render's
             # own samples (a fresh refiner per render: the same start each time)
@@ -181,7 +207,8 @@ def main() -> int:
             where = skw.get("where")
             if where is not None:   # (pixel_split=handoff: the variant's rate-0 pixels)
                 skw = dict(skw, where=qv <= 0.0)
-            m["_refiner"] = (qv, kd, skw)
+            if online:
+                m["_refiner"] = (qv, kd, skw)
             smap_v, _ = real_refiner(acc, qv, kd, **skw).solve()
             m["pixel_split_map"] = smap_v if np.any(smap_v > 1) else None
     imgs: dict[str, list[np.ndarray]] = {v: [] for v in args.variants}
@@ -227,12 +254,15 @@ def main() -> int:
     base = result["variants"][args.variants[0]]
     print(f"{args.scene}: training {result['training_spp']} spp; pixels: " +
           ", ".join(f"{k} {f:.1%}" for k, f in result["group_fraction"].items()))
-    print(f"{'variant':14s} {'s/render':>9s} {'variance':>9s} {'effic.':>8s} {'vs ' + args.variants[0]:>9s}  "
-          "variance by group (weighted by group)")
+    print(f"{'variant':14s} {'s/render':>9s} {'variance':>9s} {'effic.':>8s} {'vs ' + args.variants[0]:>9s} "
+          f"{'weighted':>9s}  variance by group (weighted by group)")
     for v, r in result["variants"].items():
         gains = base["efficiency"] / r["efficiency"] if r["efficiency"] > 0 else float("inf")
+        wgains = (base["efficiency_weighted"] / r["efficiency_weighted"] if r["efficiency_weighted"] > 0
+                  else float("inf"))
         by = ", ".join(f"{k} {x:.4g} ({r['group_variance_weighted'][k]:.4g})" for k, x in r["group_variance"].items())
-        print(f"{v:14s} {r['seconds_median']:9.3f} {r['variance']:9.4g} {r['efficiency']:8.4g} {gains:8.2f}x  {by}")
+        print(f"{v:14s} {r['seconds_median']:9.3f} {r['variance']:9.4g} {r['efficiency']:8.4g} {gains:8.2f}x "
+              f"{wgains:8.2f}x  {by}")
     print(f"wrote {out}")
     return 0
 

@@ -45,18 +45,30 @@ def test_the_variants_change_only_the_maps_they_name(fixed_maps):
     assert np.all(m["guided_trace_map"][pt] == 4.0) and np.array_equal(m["guided_trace_map"][~pt], g[~pt])
     with pytest.raises(ValueError):
         fixed_maps.variant_maps("all", q, g)
+    # pixels without chain work (rate 1 by the rates' rule) keep their rate
+    chain = rng.random((24, 24)) < 0.7
+    m = fixed_maps.variant_maps("est-traced2", q, g, chain)
+    moved = est & chain
+    assert moved.any() and (est & ~chain).any()
+    assert np.all(m["chain_rate_map"][moved] == 0.0) and np.array_equal(m["chain_rate_map"][~moved], q[~moved])
+    assert np.all(m["guided_trace_map"][moved] == 2.0) and np.array_equal(m["guided_trace_map"][~moved], g[~moved])
+    m = fixed_maps.variant_maps("est1", q, g, chain)
+    assert np.array_equal(m["chain_rate_map"][est & ~chain], q[est & ~chain])
+    assert [fixed_maps.traces_of(v) for v in ("learned", "est1", "all0", "all12", "est-traced4", "pt-traced2")] == \
+        [0, 0, 0, 12, 4, 2]
 
 
 def test_the_script_writes_its_summary(tmp_path):
     dest = tmp_path / "fm.json"
     out = subprocess.run([sys.executable, str(ROOT / "bench" / "fixed_maps.py"), str(ROOT / "scenes" / "sphere_glass.xml"),
-                          "--param", "res=16", "--time", "1.5", "--spp", "4", "--seeds", "2",
+                          "--param", "res=16", "--time", "3", "--spp", "4", "--seeds", "2",
                           "--variants", "learned", "all2", "est1", "--out", str(dest)],
                          capture_output=True, text=True, timeout=180)
     assert out.returncode == 0, out.stderr
     d = json.loads(dest.read_text())
-    assert d["training_spp"] >= 2 and d["seeds"] == 2 and d["spp"] == 4
-    assert isinstance(d["online_pixel_split"], bool)
+    assert d["seeds"] == 2 and d["spp"] == 4
+    # (mpg's default pixel split, refined online: each variant's split solved again and refined)
+    assert d["online_pixel_split"] is True
     assert abs(sum(d["group_fraction"].values()) - 1.0) < 1e-9
     assert d["group_fraction"]["no chain work"] < 1.0   # (the glass sphere's caustic: chain work)
     assert set(d["variants"]) == {"learned", "all2", "est1"}
@@ -67,3 +79,8 @@ def test_the_script_writes_its_summary(tmp_path):
     bad = subprocess.run([sys.executable, str(ROOT / "bench" / "fixed_maps.py"), "sphere", "--variants", "most"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "unknown variant" in bad.stderr
+    for args, why in ((["--variants", "all2", "all2"], "twice"), (["--variants", "all65"], "at most 64"),
+                      (["--params", '{"handoff_guided": 0}', "--variants", "learned", "all2"], "handoff_guided")):
+        bad = subprocess.run([sys.executable, str(ROOT / "bench" / "fixed_maps.py"), "sphere"] + args,
+                             capture_output=True, text=True, timeout=60)
+        assert bad.returncode == 2 and why in bad.stderr, (args, bad.stderr)
