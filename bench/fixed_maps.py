@@ -197,6 +197,7 @@ def main() -> int:
               "guided traces": has & (q <= 0) & (g > 0), "no chain work": ~has}
 
     maps = {v: variant_maps(v, q, g, has) for v in args.variants}
+    refine_args: dict[str, tuple] = {}   # (a variant's pixel split refiner: its rates, kd, options)
     for v, m in maps.items():
         if resolve_split:
             # The pixel split as the render learns it: from the variant's rates
@@ -208,7 +209,7 @@ def main() -> int:
             if where is not None:   # (pixel_split=handoff: the variant's rate-0 pixels)
                 skw = dict(skw, where=qv <= 0.0)
             if online:
-                m["_refiner"] = (qv, kd, skw)
+                refine_args[v] = (qv, kd, skw)
             smap_v, _ = real_refiner(acc, qv, kd, **skw).solve()
             m["pixel_split_map"] = smap_v if np.any(smap_v > 1) else None
     imgs: dict[str, list[np.ndarray]] = {v: [] for v in args.variants}
@@ -218,10 +219,10 @@ def main() -> int:
         for j in range(nv):
             v = args.variants[(i + j) % nv]
             call = dict(kw)
-            call.update({k: x for k, x in maps[v].items() if not k.startswith("_")})
+            call.update(maps[v])
             call["seed"] = 1000 + i
-            if "_refiner" in maps[v]:
-                qv, kd, skw = maps[v]["_refiner"]
+            if v in refine_args:
+                qv, kd, skw = refine_args[v]
                 call["pixel_split_refine"] = real_refiner(acc, qv, kd, **skw).update
             t0 = time.perf_counter()
             img = real_render(sc, integrator=seen["integrator"], **call)
