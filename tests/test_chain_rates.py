@@ -455,8 +455,8 @@ def _ceiling_scene(scenes_dir, res="24"):
     return mpg.load_string(xml.replace("</scene>", ceiling), base_dir=scenes_dir, res=res)
 
 
-@pytest.mark.parametrize("deep,k", [(1.0, 0), (0.1, 2)])
-def test_the_later_separators_of_handed_pixels_keep_the_image_unbiased(scenes_dir, deep, k):
+@pytest.mark.parametrize("deep,k,mapped", [(1.0, 0, False), (0.1, 2, False), (1.0, 2, True)])
+def test_the_later_separators_of_handed_pixels_keep_the_image_unbiased(scenes_dir, deep, k, mapped):
     """handoff_deep = q': in pixels of rate 0 the separators after a path's
     first run the chain estimator at rate q', and the path tracer's share of
     their chain paths weighs b / q' (the rate its separator ran at), the
@@ -467,16 +467,22 @@ def test_the_later_separators_of_handed_pixels_keep_the_image_unbiased(scenes_di
     separators of handed pixels. (With the path tracer keeping those
     separators' chain paths whole, the double count, ~10 % of the image,
     puts it 8-11 standard errors high; with the path tracer's share weighing
-    b instead of b / q' at q' = 0.1, 8.5 low.)"""
+    b instead of b / q' at q' = 0.1, 8.5 low.) mapped: q' per pixel from a
+    deep_rate_map (handoff_all's), in [0.05, 1] with a quarter of the
+    pixels at 0 (the path tracer's there too), in place of handoff_deep."""
     sc = _ceiling_scene(scenes_dir)
     guide = _trained_guide(sc)
     rng = np.random.default_rng(23)
     qmap = np.exp(rng.uniform(np.log(0.05), 0.0, (24, 24))).astype(np.float32)
     qmap[rng.random((24, 24)) < 0.75] = 0.0
+    dmap = None
+    if mapped:
+        dmap = np.exp(rng.uniform(np.log(0.05), 0.0, (24, 24))).astype(np.float32)
+        dmap[rng.random((24, 24)) < 0.25] = 0.0
     ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
     img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": k,
                                      "handoff_deep": deep, "light_trace_area": False},
-                     spp=8192, seed=13, progress=False, chain_rate_map=qmap)
+                     spp=8192, seed=13, progress=False, chain_rate_map=qmap, deep_rate_map=dmap)
     st = img.stats
     assert st["chain_handed"] > 0 and st["chain_deep"] > 0
     assert st["rejected_samples"] == 0
@@ -504,6 +510,40 @@ def test_handoff_deep_off_leaves_the_render_as_it_was(scenes_dir):
     for bad in (-0.1, 1e-4, 1.5):
         with pytest.raises(mpg.RenderError, match="handoff_deep"):
             mpg.render(sc, integrator=dict(base, handoff_deep=bad), spp=1, progress=False, chain_rate_map=zero)
+
+
+def test_a_deep_rate_map_replaces_handoff_deep_per_pixel(scenes_dir):
+    """deep_rate_map: the later separators' rate per pixel. A map of
+    handoff_deep everywhere renders the image without it, bit for bit; a map
+    of 0 the image of handoff_deep 0; a map of 1 in half the pixels is the
+    map of 1 there and the map of 0 elsewhere. Values other than 0 or a rate in [0.001, 1], NaN, and
+    a map of the wrong shape are clear errors."""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
+    guide = _trained_guide(sc, spp=16)
+    base = {"type": "mpg", "guide": guide, "chain_rate": 1.0, "light_trace_area": False, "handoff_guided": 0}
+    zero = np.zeros((16, 16), np.float32)
+    ones = np.ones((16, 16), np.float32)
+
+    def run(deep, dmap):
+        return mpg.render(sc, integrator=dict(base, handoff_deep=deep), spp=8, seed=3, progress=False,
+                          chain_rate_map=zero, deep_rate_map=dmap)
+    a = run(1, None)
+    assert a.stats["chain_deep"] > 0
+    assert np.array_equal(a.rgb, run(1, ones).rgb)
+    assert np.array_equal(run(0, None).rgb, run(1, zero).rgb)
+    # a pixel's map value changes that pixel only: 1 in the left half, 0 in
+    # the right gives a's left half and z's right half, bit for bit (and the
+    # left half is one where a and z differ)
+    half = ones.copy()
+    half[:, 8:] = 0.0
+    h, z = run(1, half), run(1, zero)
+    assert not np.array_equal(a.rgb[:, :8], z.rgb[:, :8])
+    assert np.array_equal(h.rgb[:, :8], a.rgb[:, :8]) and np.array_equal(h.rgb[:, 8:], z.rgb[:, 8:])
+    for bad in (-0.1, 1e-4, 1.5, float("nan")):
+        with pytest.raises(mpg.RenderError, match="deep_rate_map"):
+            run(1, np.full((16, 16), bad, np.float32))
+    with pytest.raises(mpg.RenderError, match="deep_rate_map"):
+        run(1, np.ones((8, 16), np.float32))
 
 
 def test_the_guided_trace_is_off_by_default_and_outside_rate_zero(scenes_dir):

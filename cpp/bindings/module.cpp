@@ -750,7 +750,7 @@ PYBIND11_MODULE(_core, m) {
                        py::object delta_split_map, py::object pixel_split_map, bool stratify,
                        uint64_t sample_offset, py::object guided_trace_map, bool record_classes,
                        bool light_trace, py::object delta_branch_map, bool record_branch,
-                       int lt_wave_blocks, uint64_t sequence_epoch) {
+                       int lt_wave_blocks, uint64_t sequence_epoch, py::object deep_rate_map) {
         if (!scene->committed()) throw std::runtime_error("scene not committed");
         if (spp < 1) throw std::invalid_argument("spp must be >= 1");
         PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
@@ -803,6 +803,13 @@ PYBIND11_MODULE(_core, m) {
               throw std::invalid_argument("guided_trace_map values must be integers in 0..64");
           cfg.guided_trace_map = std::move(m);
         }
+        if (!deep_rate_map.is_none()) {
+          auto m = pixel_map(deep_rate_map, scene->camera, "deep_rate_map");
+          for (float q : *m)
+            if (!(q == 0.f || (q >= 1e-3f && q <= 1.f)))
+              throw std::invalid_argument("deep_rate_map values must be 0 or in [0.001, 1]");
+          cfg.deep_rate_map = std::move(m);
+        }
         auto job = std::make_shared<RenderJob>(scene, integ, cfg);
         job->start();
         return job;
@@ -812,7 +819,7 @@ PYBIND11_MODULE(_core, m) {
          py::arg("stratify") = false, py::arg("sample_offset") = 0, py::arg("guided_trace_map") = py::none(),
          py::arg("record_classes") = false, py::arg("light_trace") = true, py::arg("delta_branch_map") = py::none(),
          py::arg("record_branch") = false, py::arg("lt_wave_blocks") = 1024,
-         py::arg("sequence_epoch") = 0)
+         py::arg("sequence_epoch") = 0, py::arg("deep_rate_map") = py::none())
       .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
       .def("cancel", &RenderJob::cancel)
       .def_property_readonly("progress", &RenderJob::progress)

@@ -40,9 +40,10 @@ Color PathIntegrator::trace(const Scene& scene, const Vec3& o_in, const Vec3& d_
   bool glint_prefix = true;
   // The chain rate at a separator: the pixel's, but in a pixel of rate 0
   // (handed to the path tracer) chains_->handoff_deep() at its separators
-  // after the first (ChainParams::handoff_deep); sep_rate: the last
-  // separator's, which the path tracer's share of its chain paths uses
-  const float deep_rate = chains_ ? chains_->handoff_deep() : 0.f;
+  // after the first (ChainParams::handoff_deep, or the pixel's
+  // PassConfig::deep_rate_map); sep_rate: the last separator's, which the
+  // path tracer's share of its chain paths uses
+  const float deep_rate = !chains_ ? 0.f : st.pixel_deep_rate >= 0.f ? st.pixel_deep_rate : chains_->handoff_deep();
   auto rate_here = [&]() -> float {
     return st.pixel_chain_rate == 0.f && seps > 0 && deep_rate > 0.f ? deep_rate : st.pixel_chain_rate;
   };

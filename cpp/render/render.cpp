@@ -106,6 +106,8 @@ void RenderJob::run() {
   if (qmap && qmap->size() != size_t(W) * H) qmap = nullptr;  // checked by the bindings
   const std::vector<float>* gmap = cfg_.guided_trace_map.get();
   if (gmap && gmap->size() != size_t(W) * H) gmap = nullptr;
+  const std::vector<float>* dmap = cfg_.deep_rate_map.get();
+  if (dmap && dmap->size() != size_t(W) * H) dmap = nullptr;
   const std::vector<float>* kmap = cfg_.delta_split_map.get();
   if (kmap && kmap->size() != size_t(W) * H) kmap = nullptr;
   const std::vector<float>* smap = cfg_.pixel_split_map.get();
@@ -169,6 +171,7 @@ void RenderJob::run() {
           st.film_y = fy;
           st.pixel_chain_rate = qmap ? (*qmap)[size_t(y) * W + x] : -1.f;
           st.pixel_trace_k = gmap ? int((*gmap)[size_t(y) * W + x]) : -1;
+          st.pixel_deep_rate = dmap ? (*dmap)[size_t(y) * W + x] : -1.f;
           st.pixel_chain_m2 = 0.0;
           const int ksplit = kmap ? std::max(1, int((*kmap)[size_t(y) * W + x])) : 1;
           st.split_delta = ksplit > 1;

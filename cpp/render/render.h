@@ -117,6 +117,11 @@ struct PassConfig {
   // or null (the integrator's handoff_guided everywhere). In training passes
   // (record_costs) 0 also switches off the record of the trace's forms.
   std::shared_ptr<const std::vector<float>> guided_trace_map;
+  // Per-pixel chain rate at the separators after a path's first in pixels of
+  // rate 0 (crop height x width, each 0 or in [0.001, 1]; 0: the path tracer
+  // there too), or null (the integrator's handoff_deep everywhere). mpg's
+  // handoff_all gives the pixels it hands off their learned rate there.
+  std::shared_ptr<const std::vector<float>> deep_rate_map;
   bool record_costs = false;
   // ... and, with record_costs and a branching integrator, the records of the
   // branched and plain delta paths (PassResult::bdelta_*; mpg's delta_plain)

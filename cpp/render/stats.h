@@ -80,6 +80,9 @@ struct Stats {
   // PassConfig::guided_trace_map at the pixel: its count of guided traces in
   // rate-0 pixels (-1: no map, the integrator's handoff_guided)
   int pixel_trace_k = -1;
+  // PassConfig::deep_rate_map at the pixel: the chain rate at a rate-0
+  // pixel's separators after the first (-1: no map, ChainParams::handoff_deep)
+  float pixel_deep_rate = -1.f;
   double pixel_chain_m2 = 0.0;
   // Per camera sample (reset by the render worker): what the sample's value
   // would change by if the path tracer kept the chain paths whole and no chain

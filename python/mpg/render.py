@@ -292,6 +292,7 @@ def render(
     delta_branch_map: np.ndarray | None = None,
     seconds_per_spp: float | None = None,
     pixel_split_refine=None,
+    deep_rate_map: np.ndarray | None = None,
 ) -> Image:
     """Render `scene` and return an Image.
 
@@ -315,6 +316,10 @@ def render(
       (crop height x width, integers 0..64; 0: none), mpg's learned one; the
       integrator's handoff_guided > 0 still switches the trace on (None: its
       handoff_guided traces in every rate-0 pixel).
+    deep_rate_map: per-pixel chain rates at the separators after a path's
+      first in pixels of rate 0 (crop height x width, 0 or in [0.001, 1]; 0:
+      the path tracer's there too), mpg's handoff_all's (None: the
+      integrator's handoff_deep everywhere).
     sampler: 'independent' or 'stratified' pixel positions; None: the scene's
       <sampler> (independent, or stratified for stratified/multijitter/
       ldsampler/orthogonal/low_discrepancy). Stratified positions are points of
@@ -456,7 +461,8 @@ def render(
                                       pixel_split_map=pixel_split_map,
                                       stratify=sampler == "stratified", sample_offset=done - epoch_start,
                                       guided_trace_map=guided_trace_map, record_classes=record_classes,
-                                      delta_branch_map=delta_branch_map, sequence_epoch=epoch)
+                                      delta_branch_map=delta_branch_map, sequence_epoch=epoch,
+                                      deep_rate_map=deep_rate_map)
             except ValueError as e:   # a bad chain_rate_map (shape, values)
                 raise RenderError(str(e)) from None
             cancelled_by_time = False
