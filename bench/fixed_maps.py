@@ -20,7 +20,7 @@ Variants (q the learned rates, g the learned guided traces of rate-0 pixels):
   est-traced<K>  the same pixels at rate 0 with K guided traces
   pt-traced<K>   the pixels at rate 0 without traces given K traces
 
-The training is `mpg.render(scene, mpg with --params, time=--time, seed=0)`;
+The training is `mpg.render(scene, mpg with --params and handoff_all 0, time=--time, seed=0)`;
 its final render call's arguments are kept (guide, maps, sampler, photon
 rate) and called again with --spp samples and seeds 1000 + i, without a time
 limit. Where the render learned a pixel split, each variant's is solved
@@ -67,10 +67,14 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 VARIANT = re.compile(r"^(learned|est1|all(\d+)|est-traced(\d+)|pt-traced(\d+))$")
 
 
-def variant_maps(name: str, q: np.ndarray, g: np.ndarray, chain: np.ndarray | None = None) -> dict:
+def variant_maps(name: str, q: np.ndarray, g: np.ndarray, chain: np.ndarray | None = None,
+                 deep: float = 1.0) -> dict:
     """The render call's map arguments that a variant replaces. chain: the
     pixels with chain work (None: all); the others keep their rate (1, which
-    the rates give a pixel without chain work) in `est1` and `est-traced<K>`."""
+    the rates give a pixel without chain work) in `est1` and `est-traced<K>`.
+    deep: the integrator's handoff_deep; `all<K>` runs the later separators
+    at the learned rates as handoff_all does (min with deep; deep where q is
+    0; none at deep 0)."""
     m = VARIANT.match(name)
     if m is None:
         raise ValueError(name)
@@ -81,8 +85,11 @@ def variant_maps(name: str, q: np.ndarray, g: np.ndarray, chain: np.ndarray | No
     if name == "est1":
         return {"chain_rate_map": np.where(est, 1.0, q).astype(f32)}
     if m.group(2) is not None:
-        return {"chain_rate_map": np.zeros_like(q, dtype=f32),
-                "guided_trace_map": np.full(q.shape, float(m.group(2)), dtype=f32)}
+        out = {"chain_rate_map": np.zeros_like(q, dtype=f32),
+               "guided_trace_map": np.full(q.shape, float(m.group(2)), dtype=f32)}
+        if deep > 0:
+            out["deep_rate_map"] = np.where(q > 0, np.minimum(q, deep), deep).astype(f32)
+        return out
     if m.group(3) is not None:
         k = float(m.group(3))
         return {"chain_rate_map": np.where(est, 0.0, q).astype(f32),
@@ -133,6 +140,9 @@ def main() -> int:
         ap.error(f"--params is not JSON: {e}")
     if not isinstance(params, dict) or "type" in params:
         ap.error("--params must be a JSON object of mpg parameters without 'type'")
+    if str(params.get("handoff_all", 0)).strip() != "0":
+        ap.error("the training keeps its learned maps (handoff_all 0): the variants all<K> are handoff_all's")
+    params["handoff_all"] = 0
     if str(params.get("handoff_guided", "")).strip() == "0" and any(traces_of(v) > 0 for v in args.variants):
         ap.error("handoff_guided 0 switches the guided traces off: the variants with traces would run none")
     loaded = load_scene(args.scene, scene_params(ap, args), "fixed_maps")
@@ -196,7 +206,8 @@ def main() -> int:
     groups = {"estimator": has & (q > 0), "path tracer alone": has & (q <= 0) & (g <= 0),
               "guided traces": has & (q <= 0) & (g > 0), "no chain work": ~has}
 
-    maps = {v: variant_maps(v, q, g, has) for v in args.variants}
+    deep = float(seen["integrator"].get("handoff_deep", 1.0))
+    maps = {v: variant_maps(v, q, g, has, deep) for v in args.variants}
     refine_args: dict[str, tuple] = {}   # (a variant's pixel split refiner: its rates, kd, options)
     for v, m in maps.items():
         if resolve_split:

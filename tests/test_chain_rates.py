@@ -1051,6 +1051,54 @@ def test_photon_rate_edges():
     assert np.isfinite(r) and all(np.isfinite(v) for v in info.values())
 
 
+def test_handoff_all_auto_follows_the_models_ratio():
+    """handoff_all=auto's rule on the rates' model: HANDOFF_ALL_AUTO_K traces
+    where F of every pixel so is at most HANDOFF_ALL_AUTO_MAX times the
+    learned maps' F, the learned maps (0) above it and where the model is
+    missing or not finite."""
+    from mpg.guiding import HANDOFF_ALL_AUTO_K as K, HANDOFF_ALL_AUTO_MAX as T, _handoff_all_auto
+    base = {"chain_rate_model_v": 2.0, "chain_rate_model_c": 5.0}
+
+    def info(v, c):
+        return dict(base, **{f"chain_rate_model_v_all{K}": v, f"chain_rate_model_c_all{K}": c})
+    assert _handoff_all_auto(info(2.0 * T * 0.99, 5.0)) == (K, pytest.approx(T * 0.99))
+    assert _handoff_all_auto(info(2.0, 5.0 * T * 1.01)) == (0, pytest.approx(T * 1.01))
+    assert _handoff_all_auto(info(1.0, 1.0))[0] == K
+    assert _handoff_all_auto(base) == (0, None)
+    assert _handoff_all_auto({}) == (0, None)
+    assert _handoff_all_auto(info(float("nan"), 5.0)) == (0, None)
+    assert _handoff_all_auto(dict(info(1.0, 1.0), chain_rate_model_v=0.0)) == (0, None)
+
+
+def test_handoff_all_auto_renders_the_choice_it_names(scenes_dir, monkeypatch):
+    """handoff_all=auto renders what it chose bit for bit: the learned maps
+    (handoff_all 0) under a bound of 0, every pixel with K traces under an
+    unbounded one, and says the model's ratio and its mode; no warning either way.
+    Where the hand-off does not run (a fixed rate, chain_handoff false) it is
+    the learned maps, without the warning an explicit handoff_all gives."""
+    import mpg.guiding as G
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
+    base = {"type": "mpg", "light_trace_area": False}
+
+    def run(**kw):   # (128 spp: training long enough for the hand-off and its model)
+        return mpg.render(sc, integrator=dict(base, **kw), spp=128, seed=5, progress=False)
+    monkeypatch.setattr(G, "HANDOFF_ALL_AUTO_MAX", 0.0)
+    a0 = run(handoff_all="auto")
+    st = a0.stats
+    assert st["handoff_all"] == 0 and st["handoff_all_mode"] == "auto"
+    assert np.isfinite(st["handoff_all_model_ratio"]) and st["handoff_all_model_ratio"] > 0
+    assert np.array_equal(a0.rgb, run(handoff_all=0).rgb)
+    monkeypatch.setattr(G, "HANDOFF_ALL_AUTO_MAX", 1e30)
+    a2 = run(handoff_all=" Auto ")
+    assert a2.stats["handoff_all"] == G.HANDOFF_ALL_AUTO_K and a2.stats["chain_handoff"].startswith("all: handoff_all=auto")
+    assert np.array_equal(a2.rgb, run(handoff_all=G.HANDOFF_ALL_AUTO_K).rgb)
+    assert not any("handoff_all" in w for w in a0.stats["warnings"] + a2.stats["warnings"])
+    for extra in ({"chain_rate": 0.5}, {"chain_handoff": False}):
+        img = run(handoff_all="auto", **extra)
+        assert img.stats["handoff_all"] == 0 and not any("handoff_all" in w for w in img.stats["warnings"])
+        assert np.array_equal(img.rgb, run(handoff_all=0, **extra).rgb)
+
+
 def test_every_pixel_handed_off_stays_unbiased(scenes_dir):
     """handoff_all's maps -- every pixel at rate 0 with two guided traces, the
     estimator at the later separators (handoff_deep) -- agree with the path
@@ -1085,19 +1133,31 @@ def test_handoff_all_replaces_the_learned_maps_or_says_why_not(scenes_dir, monke
 
     def spy(scene, integrator=None, **kw):   # (the final render is the call with a rate map)
         if kw.get("chain_rate_map") is not None:
-            seen.update(q=kw["chain_rate_map"], g=kw.get("guided_trace_map"))
+            seen.update(q=kw["chain_rate_map"], g=kw.get("guided_trace_map"), d=kw.get("deep_rate_map"))
         return real(scene, integrator=integrator, **kw)
     monkeypatch.setattr(R, "render", spy)
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
-    base = {"type": "mpg", "light_trace_area": False}
+    base = {"type": "mpg", "light_trace_area": False, "handoff_all": 0}
     learned = mpg.render(sc, integrator=base, spp=48, seed=5, progress=False)
-    assert learned.stats["handoff_all"] == 0 and np.any(seen["q"] > 0)
+    assert learned.stats["handoff_all"] == 0 and np.any(seen["q"] > 0) and seen["d"] is None
     handed = mpg.render(sc, integrator=dict(base, handoff_all=3), spp=48, seed=5, progress=False)
     st = handed.stats
     assert st["handoff_all"] == 3 and st["guided_traces"] > 0 and st["chain_handoff"] == "all: handoff_all=3"
     assert st["guided_trace_fraction"] == 1.0 and not any("handoff_all" in w for w in st["warnings"])
     assert np.all(seen["q"] == 0) and np.all(seen["g"] == 3)
-    assert not np.array_equal(learned.rgb, handed.rgb)
+    assert not np.array_equal(learned.rgb, handed.rgb) and seen["d"] is not None
+    # the later separators at the learned rates (handoff_deep, 1, where they
+    # were 0); 128 spp: training long enough for the per-pixel maps, with
+    # pixels at 0 and between 0 and 1
+    mpg.render(sc, integrator=base, spp=128, seed=5, progress=False)
+    q128 = np.array(seen["q"])
+    assert np.any(q128 == 0) and np.any((q128 > 0) & (q128 < 1))
+    handed = mpg.render(sc, integrator=dict(base, handoff_all=3), spp=128, seed=5, progress=False)
+    assert np.array_equal(seen["d"], np.where(q128 > 0, q128, 1.0).astype(np.float32))
+    half = mpg.render(sc, integrator=dict(base, handoff_all=3, handoff_deep=0.5), spp=128, seed=5, progress=False)
+    assert np.array_equal(seen["d"], np.where(q128 > 0, np.minimum(q128, 0.5), 0.5).astype(np.float32))
+    fixed = mpg.render(sc, integrator=dict(base, handoff_all=3, handoff_all_deep=False), spp=128, seed=5, progress=False)
+    assert seen["d"] is None and not np.array_equal(fixed.rgb, handed.rgb) and half.stats["chain_deep"] > 0
     # the pixel split is learned for the handed maps (and pixel_split=handoff
     # splits, with no "no split" warning of the hand-off's wait)
     import mpg.guiding as G
@@ -1111,7 +1171,7 @@ def test_handoff_all_replaces_the_learned_maps_or_says_why_not(scenes_dir, monke
     ps = mpg.render(sc, integrator=dict(base, handoff_all=2, pixel_split="handoff"), spp=48, seed=5, progress=False)
     assert split_q and np.all(split_q[-1] == 0)
     assert not any("pixel_split=handoff" in w for w in ps.stats["warnings"])
-    for bad in ("auto", -1, 2.5, 65, True, "nan", float("inf")):
+    for bad in ("autox", -1, 2.5, 65, True, "nan", float("inf")):
         with pytest.raises(mpg.RenderError, match="handoff_all"):
             mpg.render(sc, integrator={"type": "mpg", "handoff_all": bad}, spp=4, progress=False)
     for extra, why in (({"chain_rate": 0.5}, "learned rates"), ({"handoff_guided": 0}, "handoff_guided"),

@@ -107,6 +107,15 @@ def test_mpg_summary_names_handoff_all(tmp_path, scenes_dir):
     assert r.returncode == 0, r.stderr
     assert "every pixel handed to the path tracer with 2 guided traces" in r.stderr
     assert "chain rates per pixel" not in r.stderr
+    # handoff_all=auto names its choice and the model's ratio it rests on
+    # (128 spp: enough training for the hand-off and the model of the traces)
+    r = run([scene, "-D", "res=16", "--integrator", "mpg", "-P", "handoff_all=auto", "--spp", "128",
+             "-o", str(tmp_path / "a.exr"), "--stats", str(tmp_path / "a.json")])
+    assert r.returncode == 0, r.stderr
+    st = json.loads((tmp_path / "a.json").read_text())
+    assert st["handoff_all_mode"] == "auto" and "handoff_all=auto" in r.stderr
+    assert f"{st['handoff_all_model_ratio']:.2g}x" in r.stderr
+    assert ("every pixel handed" in r.stderr) == (st["handoff_all"] > 0)
 
 
 def test_mpg_summary_and_chain_rate_map(tmp_path, scenes_dir):

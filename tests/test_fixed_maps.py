@@ -37,6 +37,10 @@ def test_the_variants_change_only_the_maps_they_name(fixed_maps):
     assert np.all(m["chain_rate_map"][est] == 1.0) and np.array_equal(m["chain_rate_map"][~est], q[~est])
     m = fixed_maps.variant_maps("all3", q, g)
     assert np.all(m["chain_rate_map"] == 0.0) and np.all(m["guided_trace_map"] == 3.0)
+    assert np.array_equal(m["deep_rate_map"], np.where(q > 0, q, 1.0))   # (handoff_all's later separators)
+    assert "deep_rate_map" not in fixed_maps.variant_maps("all3", q, g, deep=0.0)
+    assert np.array_equal(fixed_maps.variant_maps("all3", q, g, deep=0.5)["deep_rate_map"],
+                          np.where(q > 0, np.minimum(q, 0.5), 0.5))
     m = fixed_maps.variant_maps("est-traced2", q, g)
     assert np.all(m["chain_rate_map"] == 0.0)
     assert np.all(m["guided_trace_map"][est] == 2.0) and np.array_equal(m["guided_trace_map"][~est], g[~est])

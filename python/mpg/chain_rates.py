@@ -432,6 +432,10 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
             cands = [(q, pt), fixed_point(True), (q, zero_form(*means(q, pt))[0])]
             q, pt = min(cands, key=model_f)
     v_model, c_model = means(q, pt)
+    # every pixel at rate 0 with k traces (handoff_all=k's maps), as the model sees it
+    for f, t in enumerate(traced):
+        v_all, c_all = means(np.ones(shape), np.where(has, f + 2, 0).astype(np.int8))
+        info[f"chain_rate_model_v_all{t[0]}"], info[f"chain_rate_model_c_all{t[0]}"] = v_all, c_all
     # pixels without chain work keep 1: the rate is never used there
     q = np.where(has & np.isfinite(q), q, 1.0)
     q = np.where(pt > 0, 0.0, q)

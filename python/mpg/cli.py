@@ -153,8 +153,11 @@ def _run(args) -> int:
               + f": {img.spp} spp, {st['seconds']:.2f} s, "
               f"{st['samples_per_second'] / 1e6:.2f} M samples/s{state}", file=sys.stderr)
         if st.get("integrator") == "mpg" and st.get("training_iterations", 0) > 0:
+            auto_all = st.get("handoff_all_mode") == "auto" and "handoff_all_model_ratio" in st
+            why_all = (f"handoff_all=auto: the rates' model put it at {st['handoff_all_model_ratio']:.2g}x "
+                       f"their maps' variance x time" if auto_all else "handoff_all")
             rates = (f"every pixel handed to the path tracer with {st['handoff_all']} guided traces "
-                     f"(handoff_all; the learned rates not used)" if st.get("handoff_all", 0) > 0 else
+                     f"({why_all}; the learned rates not used)" if st.get("handoff_all", 0) > 0 else
                      f"chain rates per pixel: mean {st['chain_rate_mean']:.3f}, "
                      f"{100 * st['chain_rate_fraction_one']:.0f} % at 1, "
                      f"{100 * st.get('chain_rate_fraction_pt', 0.0):.0f} % to the path tracer"
@@ -163,6 +166,8 @@ def _run(args) -> int:
                         if st.get("chain_rate_fraction_trace", 0.0) > 0 else "")
                      + (f" (hand-off {st['chain_handoff']})"
                         if str(st.get("chain_handoff", "")).startswith("off:") else "")
+                     + (f" (handoff_all=auto kept them: the rates' model put every pixel handed off "
+                        f"at {st['handoff_all_model_ratio']:.2g}x their variance x time)" if auto_all else "")
                      if st.get("chain_rate_mode") == "per-pixel"
                      else f"chain rate {st['chain_rate_mean']:g}")
             if st.get("delta_split", "off") != "off":

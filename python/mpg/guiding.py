@@ -115,6 +115,22 @@ HANDOFF_MIN_TRAINING = 24
 # between the two per render (the model, a race, a pilot) did not gain
 # reliably (docs/results.md, thirty-fourth session)
 HANDOFF_ALL = 0
+# handoff_all=auto hands every pixel off with
+# this many traces where the rates' model puts that at most
+# HANDOFF_ALL_AUTO_MAX times its own maps' F: the model prices the trace
+# forms 2.5-3.2x too high on double_slabs (docs/results.md, thirty-fifth
+# session) and a handed pixel's later separators as the path tracer's, so
+# the bound is well above 1; its ratio per scene and training
+# (docs/results.md, thirty-sixth session): double_slabs 1.8-2.5, ring
+# 2.6-5.5, slab 2.5-4.7, the sphere 2.0-10.4, visibility_4 4.0-4.7,
+# chain_length_4 0.9-1.05; the pool 13-14, emitter_size_010 16-21,
+# emitter_size_003 62-86, where the traces lose (the pool 4-5x)
+HANDOFF_ALL_AUTO_K = 2
+HANDOFF_ALL_AUTO_MAX = 8.0
+# handoff_all's pixels run the estimator at the separators after a path's
+# first at their learned rate where it is positive (min with handoff_deep),
+# handoff_deep where the maps handed them off too; off: handoff_deep in all
+HANDOFF_ALL_DEEP = True
 # The training measures the guided trace, and the rates choose where it runs
 # (learn_trace; design-notes "The rates choose the guided trace") ...
 LEARN_TRACE = True
@@ -300,12 +316,36 @@ def _order_free_mean(w: np.ndarray) -> float:
     return float(np.sum(np.sort(np.asarray(w, dtype=np.float64))) / max(len(w), 1))
 
 
-def _handoff_all_param(v) -> int:
-    """handoff_all: a count of guided traces in 0..64, else a RenderError naming it."""
-    k = _count_param("handoff_all", v)   # (a number >= 0; NaN fails it)
-    if not (k <= 64 and k.is_integer()):
-        raise RenderError(f"handoff_all must be a count of guided traces in 0..64, got {v!r}")
+def _handoff_all_param(v) -> int | None:
+    """handoff_all: "auto" (None) or a count of guided traces in 0..64, else
+    a RenderError naming it."""
+    if isinstance(v, str) and v.strip().lower() == "auto":
+        return None
+    try:
+        k = _count_param("handoff_all", v)   # (a number >= 0; NaN fails it)
+    except RenderError:
+        k = -1.0
+    if not (0 <= k <= 64 and k.is_integer()):
+        raise RenderError(f"handoff_all must be auto or a count of guided traces in 0..64, got {v!r}")
     return int(k)
+
+
+def _handoff_all_auto(rate_info: dict) -> tuple[int, float | None]:
+    """handoff_all=auto's choice: (HANDOFF_ALL_AUTO_K, or 0 for the learned
+    maps; the ratio it rests on), from the rates' model of every chain pixel
+    at rate 0 with HANDOFF_ALL_AUTO_K traces against the learned maps' (F =
+    mean(wV) mean(C); chain_rates.learn_rates_traced's chain_rate_model_*):
+    the traces where that ratio is at most HANDOFF_ALL_AUTO_MAX. No model of
+    them (no hand-off yet, no trace records): the learned maps."""
+    k = HANDOFF_ALL_AUTO_K
+    v, c = rate_info.get("chain_rate_model_v"), rate_info.get("chain_rate_model_c")
+    vk, ck = rate_info.get(f"chain_rate_model_v_all{k}"), rate_info.get(f"chain_rate_model_c_all{k}")
+    if None in (v, c, vk, ck) or not (v > 0.0 and c > 0.0):
+        return 0, None
+    ratio = float(vk * ck / (v * c))
+    if not np.isfinite(ratio):
+        return 0, None
+    return (k if ratio <= HANDOFF_ALL_AUTO_MAX else 0), ratio
 
 
 def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: float | None,
@@ -420,6 +460,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # handoff_all: every pixel handed off with this many guided traces in
     # place of the learned maps (design-notes "Every pixel handed off")
     handoff_all = _handoff_all_param(params.pop("handoff_all", HANDOFF_ALL))
+    # ... and its later separators at the learned rates (where positive)
+    handoff_all_deep = _as_bool("handoff_all_deep", params.pop("handoff_all_deep", HANDOFF_ALL_DEEP))
     # learn_trace: the training passes also record each sample's value with the
     # guided trace (Stats::record_trace), and the learned rates choose per pixel
     # between the path tracer alone and the path tracer with the trace at rate
@@ -749,7 +791,16 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # decided before the pixel split, the traces' map and the photon pilot,
     # which then see the maps the render runs; it overrides the hand-off's
     # wait for HANDOFF_MIN_TRAINING (asked for explicitly)
-    handoff_all_info: dict[str, Any] = {"handoff_all": handoff_all}
+    # handoff_all=auto: the traces where the rates' model of them is at most
+    # HANDOFF_ALL_AUTO_MAX times its own maps' F (_handoff_all_auto)
+    auto_all = handoff_all is None
+    auto_k, auto_ratio = _handoff_all_auto(rate_info) if qmap is not None else (0, None)
+    if auto_all:
+        handoff_all = auto_k
+    handoff_all_info: dict[str, Any] = {"handoff_all": handoff_all, "handoff_all_mode": "auto" if auto_all else "fixed"}
+    if auto_ratio is not None:
+        handoff_all_info["handoff_all_model_ratio"] = auto_ratio
+    dmap = None   # (handoff_all's rates at the later separators)
     if handoff_all > 0:
         why = None
         if qmap is None:
@@ -762,11 +813,15 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         elif params["handoff_guided"] <= 0:
             why = "handoff_guided is 0 (no guided traces)"
         if why is not None:
-            warnings.append(f"handoff_all={handoff_all} is ignored: {why}")
+            if not auto_all:   # (auto: the learned maps, said by handoff_all 0)
+                warnings.append(f"handoff_all={handoff_all} is ignored: {why}")
             handoff_all_info["handoff_all"] = 0
         else:   # (the learned maps' summary, chain_rate_*, stays: what the training chose)
+            deep = params["handoff_deep"]
+            if handoff_all_deep and deep > 0.0:
+                dmap = np.where(qmap > 0.0, np.minimum(qmap, deep), deep).astype(np.float32)
             qmap = np.zeros_like(qmap)
-            handoff_note = f"all: handoff_all={handoff_all}"
+            handoff_note = f"all: handoff_all={'auto, ' if auto_all else ''}{handoff_all}"
     if split_wait_warning is not None and handoff_all_info["handoff_all"] == 0:
         warnings.append(split_wait_warning)
     smap = None
@@ -804,7 +859,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     if photon_auto and spp_train >= PHOTON_PILOT_MIN_TRAINING:
         photon_info = _learn_photon_rate(core, scene, params, photon_auto, guide, seed, threads,
                                          dict(chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap,
-                                              guided_trace_map=gmap, delta_branch_map=bmap))
+                                              guided_trace_map=gmap, delta_branch_map=bmap, deep_rate_map=dmap))
         # (the pilot's time comes off the render's budget; seconds_training
         # includes it, seconds_photon_pilot says how much)
         seconds_training = _time.monotonic() - t0
@@ -823,6 +878,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                  spp=rest_spp, time=rest_t, seed=seed, threads=threads, progress=progress,
                  chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap, sampler=sampler,
                  guided_trace_map=gmap, record_classes=record_classes, delta_branch_map=bmap,
+                 deep_rate_map=dmap,
                  seconds_per_spp=pass_hint, pixel_split_refine=None if refiner is None else refiner.update)
     st: dict[str, Any] = img.stats
     st["warnings"] = list(dict.fromkeys(st.get("warnings", []) + warnings))

@@ -36,10 +36,10 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "chain_handoff_negligible",
                 "delta_split", "pixel_split", "pixel_split_max_cost", "pixel_split_online", "limit_in_training", "known_types",
                 "handoff_guided", "handoff_deep", "learn_trace", "trace_tails", "joint_maps",
-                "trace_min_hits", "joint_min_samples", "delta_plain", "handoff_all"}
+                "trace_min_hits", "joint_min_samples", "delta_plain", "handoff_all", "handoff_all_deep"}
 BOOL_PARAMS = {"hide_emitters", "delta_split_sobol", "light_trace_through", "light_trace_area", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "mis_rate", "chain_handoff", "limit_in_training", "known_types",
-               "learn_trace", "trace_tails", "joint_maps", "delta_plain", "pixel_split_online"}
+               "learn_trace", "trace_tails", "joint_maps", "delta_plain", "pixel_split_online", "handoff_all_deep"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
 # The SMS paper's integrators, with their parameter names, map onto `sms`.
 SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
