@@ -336,11 +336,13 @@ def test_the_handoff_waits_for_enough_training(scenes_dir):
     assert np.all(short.chain_rate_map > 0) and short.stats["chain_handed"] == 0
     assert short.pixel_split_map is None
     assert any("pixel_split=handoff" in w for w in short.stats["warnings"])
-    asked = mpg.render(sc, integrator={"type": "mpg", "chain_handoff": True}, spp=24, seed=3, progress=False)
+    # (handoff_all 0: the learned maps, which handoff_all=auto may replace)
+    asked = mpg.render(sc, integrator={"type": "mpg", "chain_handoff": True, "handoff_all": 0}, spp=24, seed=3,
+                       progress=False)
     assert asked.stats["chain_handoff"] == "on"
     hits = mpg.render(sc, integrator={"type": "mpg", "trace_min_hits": 16}, spp=24, seed=3, progress=False)
     assert any("trace_min_hits" in w and "ignored" in w for w in hits.stats["warnings"])
-    long = mpg.render(sc, integrator="mpg", spp=128, seed=3, progress=False)
+    long = mpg.render(sc, integrator={"type": "mpg", "handoff_all": 0}, spp=128, seed=3, progress=False)
     assert long.stats["spp_training"] >= HANDOFF_MIN_TRAINING and long.stats["chain_handoff"] == "on"
 
 
@@ -349,7 +351,7 @@ def test_mpg_with_learned_rates_is_deterministic(scenes_dir):
     and spp give the same image on 1 and 2 threads."""
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
     # (24 spp train 7: the hand-off asked for, so that rate 0 is among the choices)
-    p = {"type": "mpg", "chain_handoff": True}
+    p = {"type": "mpg", "chain_handoff": True, "handoff_all": 0}
     a = mpg.render(sc, integrator=p, spp=24, seed=3, threads=1, progress=False)
     b = mpg.render(sc, integrator=p, spp=24, seed=3, threads=2, progress=False)
     assert a.stats["chain_rate_mode"] == "per-pixel" and a.stats["chain_handoff"] == "on"
@@ -360,6 +362,12 @@ def test_mpg_with_learned_rates_is_deterministic(scenes_dir):
     c = mpg.render(sc, integrator={"type": "mpg", "chain_handoff": False}, spp=24, seed=3, progress=False)
     assert np.all(c.chain_rate_map > 0) and c.stats["chain_rate_fraction_pt"] == 0.0
     assert c.stats["chain_handed"] == 0
+    # ... and so is handoff_all=auto's choice (the defaults)
+    d1 = mpg.render(sc, integrator="mpg", spp=128, seed=3, threads=1, progress=False)
+    d2 = mpg.render(sc, integrator="mpg", spp=128, seed=3, threads=2, progress=False)
+    assert d1.stats["handoff_all_mode"] == "auto" and "handoff_all_model_ratio" in d1.stats
+    assert d1.stats["handoff_all_model_ratio"] == d2.stats["handoff_all_model_ratio"]
+    assert np.array_equal(d1.rgb, d2.rgb)
 
 
 @pytest.mark.parametrize("mis_rate", [False, True])

@@ -109,22 +109,24 @@ HANDOFF_DEEP = 1.0
 # 0.00104 / 0.00136; docs/results.md, thirtieth session).
 HANDOFF_MIN_TRAINING = 24
 # handoff_all: 0 renders the learned maps; K >= 1 hands every pixel to the
-# path tracer with K guided traces (double_slabs' seeds' variance 1.4-1.8x
-# lower at 2-20 s with 2; the sphere's relMSE 1.6-1.7x, chain_length_4's MSE
-# 1.1-1.2x and the pool's 3.8-4.0x higher), so 0 is the default; choosing
-# between the two per render (the model, a race, a pilot) did not gain
-# reliably (docs/results.md, thirty-fourth session)
-HANDOFF_ALL = 0
-# handoff_all=auto hands every pixel off with
-# this many traces where the rates' model puts that at most
-# HANDOFF_ALL_AUTO_MAX times its own maps' F: the model prices the trace
-# forms 2.5-3.2x too high on double_slabs (docs/results.md, thirty-fifth
-# session) and a handed pixel's later separators as the path tracer's, so
-# the bound is well above 1; its ratio per scene and training
-# (docs/results.md, thirty-sixth session): double_slabs 1.8-2.5, ring
-# 2.6-5.5, slab 2.5-4.7, the sphere 2.0-10.4, visibility_4 4.0-4.7,
-# chain_length_4 0.9-1.05; the pool 13-14, emitter_size_010 16-21,
-# emitter_size_003 62-86, where the traces lose (the pool 4-5x)
+# path tracer with K guided traces; "auto" (the default) chooses between 0
+# and HANDOFF_ALL_AUTO_K per render. With 2 in every render double_slabs'
+# seeds' variance is 1.4-1.8x lower at 2-20 s, the ring's 1.7x, the slab's
+# 1.15x, but chain_length_4's MSE 1.1x and the pool's 4-5x higher
+# (docs/results.md, thirty-fourth to thirty-sixth sessions); a race or a
+# pilot in the render did not choose reliably (thirty-fourth).
+HANDOFF_ALL = "auto"
+# auto hands every pixel off with HANDOFF_ALL_AUTO_K traces where the rates'
+# model puts that at most HANDOFF_ALL_AUTO_MAX times its own maps' F: the
+# model prices the trace forms 2.5-3.2x too high on double_slabs
+# (docs/results.md, thirty-fifth session), so the bound is well above 1.
+# Its ratio per scene and training (thirty-sixth session): double_slabs
+# 1.7-2.6, ring 2.6-5.5, slab 2.5-4.7, the sphere 1.2-10.4, visibility_4
+# 4.0-4.7, emitter_size_030 2.4-4.3, chain_length_4 0.9-1.05 (these hand
+# off: 1.07-1.62x lower seeds' variance, emitter_size_030 level,
+# chain_length_4 0.94x); the pool 12-14.6 (the traces 4-5x worse there),
+# emitter_size_010 10.6-42 (there they would gain 1.6x: the ratio does not
+# separate the two), emitter_size_003 62-86 (these keep the learned maps)
 HANDOFF_ALL_AUTO_K = 2
 HANDOFF_ALL_AUTO_MAX = 8.0
 # handoff_all's pixels run the estimator at the separators after a path's
