@@ -1075,6 +1075,8 @@ def test_handoff_all_auto_follows_the_models_ratio():
     assert _handoff_all_auto(base) == (0, None)
     assert _handoff_all_auto({}) == (0, None)
     assert _handoff_all_auto(info(float("nan"), 5.0)) == (0, None)
+    assert _handoff_all_auto(info(0.0, 5.0)) == (0, None) and _handoff_all_auto(info(-1.0, 5.0)) == (0, None)
+    assert _handoff_all_auto(info(1.0, 0.0)) == (0, None)
     assert _handoff_all_auto(dict(info(1.0, 1.0), chain_rate_model_v=0.0)) == (0, None)
 
 
@@ -1151,6 +1153,7 @@ def test_handoff_all_replaces_the_learned_maps_or_says_why_not(scenes_dir, monke
     handed = mpg.render(sc, integrator=dict(base, handoff_all=3), spp=48, seed=5, progress=False)
     st = handed.stats
     assert st["handoff_all"] == 3 and st["guided_traces"] > 0 and st["chain_handoff"] == "all: handoff_all=3"
+    assert st["handoff_all_deep"] is True and learned.stats.get("handoff_all_deep") is None
     assert st["guided_trace_fraction"] == 1.0 and not any("handoff_all" in w for w in st["warnings"])
     assert np.all(seen["q"] == 0) and np.all(seen["g"] == 3)
     assert not np.array_equal(learned.rgb, handed.rgb) and seen["d"] is not None
@@ -1166,6 +1169,7 @@ def test_handoff_all_replaces_the_learned_maps_or_says_why_not(scenes_dir, monke
     assert np.array_equal(seen["d"], np.where(q128 > 0, np.minimum(q128, 0.5), 0.5).astype(np.float32))
     fixed = mpg.render(sc, integrator=dict(base, handoff_all=3, handoff_all_deep=False), spp=128, seed=5, progress=False)
     assert seen["d"] is None and not np.array_equal(fixed.rgb, handed.rgb) and half.stats["chain_deep"] > 0
+    assert fixed.stats["handoff_all_deep"] is False
     # the pixel split is learned for the handed maps (and pixel_split=handoff
     # splits, with no "no split" warning of the hand-off's wait)
     import mpg.guiding as G

@@ -103,10 +103,12 @@ def test_mpg_summary_names_handoff_all(tmp_path, scenes_dir):
     the learned rates the render did not use."""
     scene = str(scenes_dir / "sphere_glass.xml")
     r = run([scene, "-D", "res=16", "--integrator", "mpg", "-P", "handoff_all=2", "--spp", "24",
-             "-o", str(tmp_path / "m.exr")])
+             "-o", str(tmp_path / "m.exr"), "--chain-rate-map", str(tmp_path / "q.png")])
     assert r.returncode == 0, r.stderr
     assert "every pixel handed to the path tracer with 2 guided traces" in r.stderr
     assert "chain rates per pixel" not in r.stderr
+    # (and the rate map it writes is the render's, 0 everywhere, with a note saying so)
+    assert (tmp_path / "q.png").exists() and "chain rate map written is 0 everywhere" in r.stderr
     # handoff_all=auto names its choice and the model's ratio it rests on
     # (128 spp: enough training for the hand-off and the model of the traces)
     r = run([scene, "-D", "res=16", "--integrator", "mpg", "-P", "handoff_all=auto", "--spp", "128",

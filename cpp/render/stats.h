@@ -205,7 +205,7 @@ struct Stats {
   uint64_t chain_inactive = 0;       // separators skipped by selective activation
   uint64_t chain_skipped = 0;        // separators skipped by the roulette (chain_rate < 1)
   uint64_t chain_handed = 0;         // separators in pixels of rate 0 (the path tracer's light whole)
-  uint64_t chain_deep = 0;           // separators after a path's first in pixels of rate 0, at handoff_deep's rate (not in chain_handed)
+  uint64_t chain_deep = 0;           // separators after a path's first in pixels of rate 0, at handoff_deep's rate or the pixel's deep_rate_map (not in chain_handed)
   // light tracing (integrators/light_trace.h)
   uint64_t chain_lt_skipped = 0;     // chain estimates whose point/spot light the light tracer takes (value 0)
   uint64_t lt_photons = 0, lt_rays = 0, lt_splats = 0;

@@ -133,6 +133,11 @@ def _run(args) -> int:
             from mpg.chain_rates import rate_map_grey8
             from mpg.image import write_png8
             write_png8(args.chain_rate_map, rate_map_grey8(img.chain_rate_map))
+            if img.stats.get("handoff_all", 0) > 0:
+                print(f"mpg-render: note: every pixel was handed to the path tracer (handoff_all="
+                      f"{'auto, ' if img.stats.get('handoff_all_mode') == 'auto' else ''}{img.stats['handoff_all']}): "
+                      f"the chain rate map written is 0 everywhere (-P handoff_all=0 renders the learned one)",
+                      file=sys.stderr)
     if args.stats:
         stats = dict(img.stats)
         stats["scene"] = os.path.abspath(path)

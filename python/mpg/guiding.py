@@ -338,11 +338,13 @@ def _handoff_all_auto(rate_info: dict) -> tuple[int, float | None]:
     at rate 0 with HANDOFF_ALL_AUTO_K traces against the learned maps' (F =
     mean(wV) mean(C); chain_rates.learn_rates_traced's chain_rate_model_*):
     the traces where that ratio is at most HANDOFF_ALL_AUTO_MAX. No model of
-    them (no hand-off yet, no trace records): the learned maps."""
+    them (no hand-off yet, no trace records, a mean at or below 0): the
+    learned maps."""
     k = HANDOFF_ALL_AUTO_K
     v, c = rate_info.get("chain_rate_model_v"), rate_info.get("chain_rate_model_c")
     vk, ck = rate_info.get(f"chain_rate_model_v_all{k}"), rate_info.get(f"chain_rate_model_c_all{k}")
-    if None in (v, c, vk, ck) or not (v > 0.0 and c > 0.0):
+    # (a model at or below 0 is no model: chain_rates' model_f never chooses it)
+    if None in (v, c, vk, ck) or not (v > 0.0 and c > 0.0 and vk > 0.0 and ck > 0.0):
         return 0, None
     ratio = float(vk * ck / (v * c))
     if not np.isfinite(ratio):
@@ -822,6 +824,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             deep = params["handoff_deep"]
             if handoff_all_deep and deep > 0.0:
                 dmap = np.where(qmap > 0.0, np.minimum(qmap, deep), deep).astype(np.float32)
+            handoff_all_info["handoff_all_deep"] = dmap is not None
             qmap = np.zeros_like(qmap)
             handoff_note = f"all: handoff_all={'auto, ' if auto_all else ''}{handoff_all}"
     if split_wait_warning is not None and handoff_all_info["handoff_all"] == 0:
