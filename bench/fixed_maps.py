@@ -140,7 +140,7 @@ def main() -> int:
         ap.error(f"--params is not JSON: {e}")
     if not isinstance(params, dict) or "type" in params:
         ap.error("--params must be a JSON object of mpg parameters without 'type'")
-    if str(params.get("handoff_all", 0)).strip() != "0":
+    if params.get("handoff_all", 0) not in (0, "0"):   # (0.0 == 0; "0.0" is refused with the rest)
         ap.error("the training keeps its learned maps (handoff_all 0): the variants all<K> are handoff_all's")
     params["handoff_all"] = 0
     if str(params.get("handoff_guided", "")).strip() == "0" and any(traces_of(v) > 0 for v in args.variants):
