@@ -121,12 +121,13 @@ HANDOFF_ALL = "auto"
 # model prices the trace forms 2.5-3.2x too high on double_slabs
 # (docs/results.md, thirty-fifth session), so the bound is well above 1.
 # Its ratio per scene and training (thirty-sixth session): double_slabs
-# 1.7-2.6, ring 2.6-5.5, slab 2.5-4.7, the sphere 1.2-10.4, visibility_4
-# 4.0-4.7, emitter_size_030 2.4-4.3, chain_length_4 0.9-1.05 (these hand
-# off: 1.07-1.62x lower seeds' variance, emitter_size_030 level,
-# chain_length_4 0.94x); the pool 12-14.6 (the traces 4-5x worse there),
-# emitter_size_010 10.6-42 (there they would gain 1.6x: the ratio does not
-# separate the two), emitter_size_003 62-86 (these keep the learned maps)
+# 1.7-2.6, ring 1.6-5.5, slab 2.5-4.7, the sphere 1.2-10.4, visibility_4
+# 4.0-4.7, emitter_size_030 2.4-4.3, chain_length_4 0.9-1.4 (these hand
+# off: 1.07-1.80x lower seeds' variance, emitter_size_030 level, the slab
+# 0.87x at 20 s, chain_length_4 0.90-0.94x); the pool 12-14.6 (the traces
+# 4-5x worse there), emitter_size_010 10.6-42 (there they would gain 1.6x:
+# the ratio does not separate the two), emitter_size_003 62-86 (these keep
+# the learned maps)
 HANDOFF_ALL_AUTO_K = 2
 HANDOFF_ALL_AUTO_MAX = 8.0
 # handoff_all's pixels run the estimator at the separators after a path's
