@@ -87,8 +87,10 @@ def variant_maps(name: str, q: np.ndarray, g: np.ndarray, chain: np.ndarray | No
     if m.group(2) is not None:
         out = {"chain_rate_map": np.zeros_like(q, dtype=f32),
                "guided_trace_map": np.full(q.shape, float(m.group(2)), dtype=f32)}
-        if deep > 0:
-            out["deep_rate_map"] = np.where(q > 0, np.minimum(q, deep), deep).astype(f32)
+        from mpg.guiding import handoff_all_deep_map
+        dmap = handoff_all_deep_map(q, deep)
+        if dmap is not None:
+            out["deep_rate_map"] = dmap
         return out
     if m.group(3) is not None:
         k = float(m.group(3))

@@ -333,6 +333,16 @@ def _handoff_all_param(v) -> int | None:
     return int(k)
 
 
+def handoff_all_deep_map(q: np.ndarray, deep: float) -> np.ndarray | None:
+    """handoff_all's deep_rate_map from the learned rates q: the later
+    separators at min(q, handoff_deep) where q > 0, at handoff_deep where the
+    maps handed the pixel to the path tracer (q = 0); None at deep 0 (no
+    estimator there)."""
+    if not deep > 0.0:
+        return None
+    return np.where(q > 0.0, np.minimum(q, deep), deep).astype(np.float32)
+
+
 def _handoff_all_auto(rate_info: dict) -> tuple[int, float | None]:
     """handoff_all=auto's choice: (HANDOFF_ALL_AUTO_K, or 0 for the learned
     maps; the ratio it rests on), from the rates' model of every chain pixel
@@ -822,9 +832,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                 warnings.append(f"handoff_all={handoff_all} is ignored: {why}")
             handoff_all_info["handoff_all"] = 0
         else:   # (the learned maps' summary, chain_rate_*, stays: what the training chose)
-            deep = params["handoff_deep"]
-            if handoff_all_deep and deep > 0.0:
-                dmap = np.where(qmap > 0.0, np.minimum(qmap, deep), deep).astype(np.float32)
+            if handoff_all_deep:
+                dmap = handoff_all_deep_map(qmap, params["handoff_deep"])
             handoff_all_info["handoff_all_deep"] = dmap is not None
             qmap = np.zeros_like(qmap)
             handoff_note = f"all: handoff_all={'auto, ' if auto_all else ''}{handoff_all}"
