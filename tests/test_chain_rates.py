@@ -424,24 +424,31 @@ def _trained_guide(sc, spp=64, seed=5):
     return g
 
 
-@pytest.mark.parametrize("scene,k", [("sphere_glass.xml", 4), ("slab_glass.xml", 1)])
-def test_the_guided_trace_of_handed_pixels_keeps_the_image_unbiased(scenes_dir, scene, k):
+@pytest.mark.parametrize("scene,k,defensive", [("sphere_glass.xml", 4, 0.0), ("slab_glass.xml", 1, 0.0),
+                                               ("slab_glass.xml", 2, 0.5)])
+def test_the_guided_trace_of_handed_pixels_keeps_the_image_unbiased(scenes_dir, scene, k, defensive):
     """handoff_guided = k: in pixels of rate 0, k directions drawn from the
     leaf, traced through their letters to the light, share the chain paths with
     the path tracer by the balance heuristic k g / (b + k g) and b / (b + k g). A map
     with half the pixels at 0 (the rest in [0.05, 1]) agrees with the path
     tracer (|z| < 5 on the image and nine regions, p < 6e-7 each), and the
-    traces found the light."""
+    traces found the light. defensive: trace_defensive, half the traces from
+    the lobes with kappa capped at 30 (g their mixture's density)."""
     sc = mpg.load_file(scenes_dir / scene, res="24")
     guide = _trained_guide(sc)
     rng = np.random.default_rng(17)
     qmap = np.exp(rng.uniform(np.log(0.05), 0.0, (24, 24))).astype(np.float32)
     qmap[rng.random((24, 24)) < 0.5] = 0.0
     ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
-    img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": k, "light_trace_area": False},
+    img = mpg.render(sc, integrator={"type": "mpg", "guide": guide, "chain_rate": 1.0, "handoff_guided": k, "light_trace_area": False,
+                                     "trace_defensive": defensive, "trace_defensive_kappa": 30.0},
                      spp=1024, seed=13, progress=False, chain_rate_map=qmap)
     st = img.stats
     assert st["chain_handed"] > 0 and st["guided_traces"] > 0
+    if defensive > 0:
+        assert st["guided_traces_defensive"] == pytest.approx(defensive * st["guided_traces"], rel=0.05)
+    else:
+        assert st["guided_traces_defensive"] == 0
     assert st["guided_trace_hits"] > 0.01 * st["guided_traces"]
     assert st["rejected_samples"] == 0
     assert image_zmax(img, ref, REGIONS_24) < 5

@@ -350,6 +350,44 @@ def test_vmf_mixture_sampler_matches_its_density():
     assert integral == pytest.approx(1.0, abs=2e-3)
 
 
+def test_defensive_lobes_sampler_matches_its_density():
+    """The guided trace's defensive share (trace_defensive): the leaf's lobes
+    with kappa capped draw what pdf_dir(defensive=1, kappa_cap) gives
+    (chi-square, significance 1e-4), the mixture is the two densities'
+    convex combination, and a cap above every lobe's kappa changes nothing."""
+    rng = np.random.default_rng(11)
+    N = 60
+    d = rng.normal(scale=0.05, size=(N, 3)) + np.array([0, 0, 1.0])   # sharp lobes (kappa ~ 1e3-1e5)
+    xD = np.zeros((N, 3), np.float32)
+    xL = np.zeros((N, 3), np.float32)
+    g = _core.GuidingState()
+    g.build(xD, xL, d.astype(np.float32), np.full(N, 2, np.int32), np.zeros(N, np.uint16),
+            rng.exponential(size=N).astype(np.float32), [-1, -1, -1], [1, 1, 1], c=100.0)
+    assert g.num_leaves == 1
+    cap = 30.0
+    M = 400000
+    s = g.sample_dir(0, 2, 0, uniform_u(M, 3, 12), kappa_cap=cap)
+    assert np.isfinite(s).all()
+    p, msg, integral, _ = sphere_gof(s, lambda v: g.pdf_dir(0, 2, 0, v.astype(np.float32), defensive=1.0,
+                                                           kappa_cap=cap), M)
+    assert p > 1e-4, msg
+    assert integral == pytest.approx(1.0, abs=2e-3)
+    # the capped lobes are broad: their draws lie far wider than the learned ones'
+    sharp = g.sample_dir(0, 2, 0, uniform_u(M, 3, 13))
+    assert np.mean(s[:, 2] < 0.9) > 10 * max(np.mean(sharp[:, 2] < 0.9), 1e-4)
+    dirs = g.sample_dir(0, 2, 0, uniform_u(2000, 3, 14), kappa_cap=3.0)
+    p0 = g.pdf_dir(0, 2, 0, dirs)
+    p1 = g.pdf_dir(0, 2, 0, dirs, defensive=1.0, kappa_cap=cap)
+    pm = g.pdf_dir(0, 2, 0, dirs, defensive=0.25, kappa_cap=cap)
+    np.testing.assert_allclose(pm, 0.75 * p0 + 0.25 * p1, rtol=1e-5, atol=1e-12)
+    assert np.mean(pm > 0) > 0.5   # (terms below e^-40 of a lobe's peak are left out, as pdf_dir does)
+    np.testing.assert_allclose(g.pdf_dir(0, 2, 0, dirs, defensive=0.5, kappa_cap=1e8), p0, rtol=1e-5, atol=1e-12)
+    with pytest.raises(ValueError, match="kappa_cap"):
+        g.sample_dir(0, 2, 0, uniform_u(4, 3, 1), kappa_cap=0.0)
+    with pytest.raises(ValueError, match="kappa_cap"):
+        g.pdf_dir(0, 2, 0, dirs, defensive=0.5, kappa_cap=1e-4)
+
+
 def test_anchored_mixture_sampler_matches_its_density():
     """lobe_anchor: the lobes aim from the query's x_D at anchors along the
     samples' directions; the sampler at an x_D away from every sample's

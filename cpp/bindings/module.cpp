@@ -300,6 +300,13 @@ std::shared_ptr<Integrator> make_integrator(std::shared_ptr<const Scene> scene, 
       cp.known_types = get<bool>(p, "known_types", cp.known_types);
       cp.handoff_guided = get<int>(p, "handoff_guided", cp.handoff_guided);
       if (cp.handoff_guided < 0 || cp.handoff_guided > 64) throw std::invalid_argument("handoff_guided must be in 0..64");
+      cp.trace_defensive = get<float>(p, "trace_defensive", cp.trace_defensive);
+      if (!(cp.trace_defensive >= 0.f && cp.trace_defensive < 1.f))
+        throw std::invalid_argument("trace_defensive must be in [0, 1), got " + std::to_string(cp.trace_defensive));
+      cp.trace_defensive_kappa = get<float>(p, "trace_defensive_kappa", cp.trace_defensive_kappa);
+      if (!(cp.trace_defensive_kappa >= 1e-3f && cp.trace_defensive_kappa <= 1e8f))
+        throw std::invalid_argument("trace_defensive_kappa must be in [0.001, 1e8], got " +
+                                    std::to_string(cp.trace_defensive_kappa));
       cp.handoff_deep = get<float>(p, "handoff_deep", cp.handoff_deep);
       if (!(cp.handoff_deep == 0.f || (cp.handoff_deep >= 1e-3f && cp.handoff_deep <= 1.f)))
         throw std::invalid_argument("handoff_deep must be 0 (off) or a chain rate in [0.001, 1], got " +
@@ -993,8 +1000,10 @@ PYBIND11_MODULE(_core, m) {
         return g.tree().leaf(leaf).unfiltered > 0 && !g.distribution(leaf).empty(); },
            "Does a query reach this leaf's distribution (unfiltered samples: selective activation)?")
       .def("pmf_tau", [](const GuidingState& g, int leaf, int n, uint16_t tau) { return g.distribution(leaf).pmf_tau(n, tau); })
-      .def("sample_dir", [](const GuidingState& g, int leaf, int n, uint16_t tau, const FArray& u, py::object xD) {
+      .def("sample_dir", [](const GuidingState& g, int leaf, int n, uint16_t tau, const FArray& u, py::object xD,
+                            float kappa_cap) {
         if (u.ndim() != 2 || u.shape(1) != 3) throw std::invalid_argument("u must have shape (N, 3)");
+        if (!(kappa_cap >= 1e-3f)) throw std::invalid_argument("kappa_cap must be >= 0.001");
         const ChainDistribution& d = g.distribution(leaf);
         if (d.anchored() && xD.is_none())
           throw std::invalid_argument("the leaf's lobes are anchored (lobe_anchor): pass xD, the point they aim from");
@@ -1002,22 +1011,34 @@ PYBIND11_MODULE(_core, m) {
         FArray out(std::vector<ssize_t>{u.shape(0), 3});
         for (ssize_t i = 0; i < u.shape(0); ++i) {
           Vec3 w(0.f);
-          if (!d.sample_dir(n, tau, u.at(i, 0), Vec2(u.at(i, 1), u.at(i, 2)), p, w)) w = Vec3(0.f);
+          const int t = d.find_type_index(n, tau);
+          if (t < 0 || !d.sample_dir_of(t, u.at(i, 0), Vec2(u.at(i, 1), u.at(i, 2)), p, w, kappa_cap)) w = Vec3(0.f);
           out.mutable_at(i, 0) = w.x; out.mutable_at(i, 1) = w.y; out.mutable_at(i, 2) = w.z;
         }
         return out;
       }, py::arg("leaf"), py::arg("n"), py::arg("tau"), py::arg("u"), py::arg("xD") = py::none(),
+         py::arg("kappa_cap") = std::numeric_limits<float>::infinity(),
          "Directions from leaf's lobes of (n, tau) for u (N x 3: lobe, then the vMF pair), seen from xD "
-         "(anchored lobes aim from it and need it; others ignore it).")
-      .def("pdf_dir", [](const GuidingState& g, int leaf, int n, uint16_t tau, const FArray& dirs, py::object xD) {
+         "(anchored lobes aim from it and need it; others ignore it); kappa_cap caps each lobe's kappa "
+         "(the guided trace's defensive lobes).")
+      .def("pdf_dir", [](const GuidingState& g, int leaf, int n, uint16_t tau, const FArray& dirs, py::object xD,
+                         double defensive, float kappa_cap) {
         const auto d = rows3(dirs, "dirs");
+        if (!(defensive >= 0.0 && defensive <= 1.0)) throw std::invalid_argument("defensive must be in [0, 1]");
+        if (!(kappa_cap >= 1e-3f)) throw std::invalid_argument("kappa_cap must be >= 0.001");
         if (g.distribution(leaf).anchored() && xD.is_none())
           throw std::invalid_argument("the leaf's lobes are anchored (lobe_anchor): pass xD, the point they aim from");
         const Vec3 p = xD.is_none() ? Vec3(0.f) : vec3(xD);
         DArray out(std::vector<ssize_t>{ssize_t(d.size())});
-        for (size_t i = 0; i < d.size(); ++i) out.mutable_data()[i] = g.distribution(leaf).pdf_dir(n, tau, p, d[i]);
+        const ChainDistribution& cd = g.distribution(leaf);
+        for (size_t i = 0; i < d.size(); ++i)
+          out.mutable_data()[i] = defensive > 0.0 ? cd.pdf_dir_defensive(n, tau, p, d[i], defensive, kappa_cap)
+                                                  : double(cd.pdf_dir(n, tau, p, d[i]));
         return out;
-      }, py::arg("leaf"), py::arg("n"), py::arg("tau"), py::arg("dirs"), py::arg("xD") = py::none());
+      }, py::arg("leaf"), py::arg("n"), py::arg("tau"), py::arg("dirs"), py::arg("xD") = py::none(),
+         py::arg("defensive") = 0.0, py::arg("kappa_cap") = std::numeric_limits<float>::infinity(),
+         "The density of sample_dir's directions; with defensive > 0, (1 - defensive) of it plus defensive "
+         "times the density of the lobes with kappa capped at kappa_cap (the guided trace's mixture).");
   m.attr("SUBPATH_SAMPLE_BYTES") = sizeof(SubpathSample);
   m.def("warp_sample", &warp_sample, py::arg("name"), py::arg("u"), py::arg("param") = 0.f);
   // DiscreteDistribution::sample on weights for each u: (index, rescaled u) (tests).

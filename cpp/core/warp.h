@@ -73,10 +73,15 @@ inline Vec2 square_to_uniform_triangle(const Vec2& u) {
 // Density (MPG supplemental Eq. 1): v(w) = kappa / (4 pi sinh kappa) exp(kappa cos).
 // Written as kappa / (2 pi (1 - e^{-2 kappa})) exp(kappa (cos - 1)) so that it
 // neither overflows for kappa = 1e8 nor cancels for kappa = 1e-8.
+// The factor kappa / (2 pi (1 - e^{-2 kappa})) (kappa > 1e-12). Above kappa =
+// 20, 1 - e^{-40} is 1 in double, so the expm1 is skipped: the same bits.
+inline double vmf_norm(double kappa) {
+  const double den = kappa > 20.0 ? 1.0 : -std::expm1(-2.0 * kappa);
+  return kappa / (2.0 * 3.14159265358979323846 * den);
+}
 inline double vmf_pdf_cos(double cos_theta, double kappa) {
   if (!(kappa > 1e-12)) return 1.0 / (4.0 * 3.14159265358979323846);
-  const double norm = kappa / (2.0 * 3.14159265358979323846 * (-std::expm1(-2.0 * kappa)));
-  return norm * std::exp(kappa * (std::min(cos_theta, 1.0) - 1.0));
+  return vmf_norm(kappa) * std::exp(kappa * (std::min(cos_theta, 1.0) - 1.0));
 }
 inline float vmf_pdf(const Vec3& v, float kappa) { return float(vmf_pdf_cos(v.z, kappa)); }
 

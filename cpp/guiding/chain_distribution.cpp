@@ -290,7 +290,8 @@ float ChainDistribution::pmf_tau(int n, uint16_t tau) const {
   return t < 0 ? 0.f : types_[size_t(t)].pmf;
 }
 
-bool ChainDistribution::sample_dir_of(int t, double u_lobe, const Vec2& u, const Vec3& xD, Vec3& dir) const {
+bool ChainDistribution::sample_dir_of(int t, double u_lobe, const Vec2& u, const Vec3& xD, Vec3& dir,
+                                      float kappa_cap) const {
   const Type& ty = types_[size_t(t)];
   if (ty.count == 0) return false;
   // the alias table's bin from u_lobe, and the fraction within it for q
@@ -300,7 +301,7 @@ bool ChainDistribution::sample_dir_of(int t, double u_lobe, const Vec2& u, const
   const size_t b = std::min(size_t(x), m - 1);
   const LobeEntry* e = &L[b];
   if (!(x - double(b) < double(e->q))) e = &L[e->alias];
-  const Vec3 local = warp::square_to_vmf(u, e->kappa);
+  const Vec3 local = warp::square_to_vmf(u, std::min(e->kappa, kappa_cap));
   dir = Frame(centre(*e, xD)).to_world(local);
   return true;
 }
@@ -326,6 +327,37 @@ float ChainDistribution::pdf_dir(int n, uint16_t tau, const Vec3& xD, const Vec3
     p += double(lobe_pmf_[i]) * warp::vmf_pdf_cos(c, k);
   }
   return float(p);
+}
+
+double ChainDistribution::pdf_dir_defensive(int n, uint16_t tau, const Vec3& xD, const Vec3& dir, double beta,
+                                            float kappa_cap) const {
+  const int t = find_type(n, tau);
+  if (t < 0) return 0.0;
+  const Type& ty = types_[size_t(t)];
+  double p = 0.0, pd = 0.0;
+  const double cap = double(kappa_cap);
+  const double norm_cap = warp::vmf_norm(cap);   // (cap >= 1e-3: the callers check it)
+  for (uint32_t i = ty.first; i < ty.first + ty.count; ++i) {
+    // (pdf_dir's skip of terms below e^-40 of their peak, per kappa; the
+    // capped kappa is the smaller, so past its bound both terms are)
+    const double c = double(glm::dot(centre(lobes_[i], xD), dir));
+    const double k = double(lobes_[i].kappa);
+    if (!(k > cap)) {
+      // (a lobe at or below the cap: both terms are its own vMF)
+      if (k * (1.0 - std::min(c, 1.0)) > 40.0) continue;
+      const double t = double(lobe_pmf_[i]) * warp::vmf_pdf_cos(c, k);
+      p += t;
+      pd += t;
+      continue;
+    }
+    const double one_minus = 1.0 - std::min(c, 1.0);
+    if (cap * one_minus > 40.0) continue;
+    const double w = double(lobe_pmf_[i]);
+    // (vmf_pdf_cos's terms, its normalisation of the cap computed once)
+    if (k * one_minus <= 40.0) p += w * warp::vmf_norm(k) * std::exp(-k * one_minus);
+    pd += w * norm_cap * std::exp(-cap * one_minus);
+  }
+  return (1.0 - beta) * p + beta * pd;
 }
 
 }  // namespace mpg

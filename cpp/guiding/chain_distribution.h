@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <array>
+#include <limits>
 #include <vector>
 
 #include "core/distribution.h"
@@ -54,6 +55,12 @@ class ChainDistribution {
   // from; unanchored ones ignore it); density is per solid angle.
   bool sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, const Vec3& xD, Vec3& dir) const;
   float pdf_dir(int n, uint16_t tau, const Vec3& xD, const Vec3& dir) const;
+  // The guided trace's direction density with a defensive share: (1 - beta)
+  // pdf_dir + beta times the same mixture with every lobe's kappa capped at
+  // kappa_cap (design-notes "The guided trace's defensive lobes"), which
+  // sample_dir_of(..., kappa_cap) draws. beta = 0: pdf_dir in double.
+  double pdf_dir_defensive(int n, uint16_t tau, const Vec3& xD, const Vec3& dir, double beta,
+                           float kappa_cap) const;
   // The lobes pdf_dir visits for (n, tau): its cost (one dot product each)
   uint32_t lobe_count(int n, uint16_t tau) const {
     const int t = find_type(n, tau);
@@ -66,8 +73,11 @@ class ChainDistribution {
   int sample_type(int n, float u) const;
   // Does the leaf hold a sample of type (n, tau)?
   bool has_type(int n, uint16_t tau) const { return find_type(n, tau) >= 0; }
+  int find_type_index(int n, uint16_t tau) const { return find_type(n, tau); }   // (-1: none)
   uint16_t type_tau(int t) const { return types_[size_t(t)].tau; }
-  bool sample_dir_of(int t, double u_lobe, const Vec2& u, const Vec3& xD, Vec3& dir) const;
+  // (kappa_cap: the lobe's kappa capped there, pdf_dir_defensive's broad share)
+  bool sample_dir_of(int t, double u_lobe, const Vec2& u, const Vec3& xD, Vec3& dir,
+                     float kappa_cap = std::numeric_limits<float>::infinity()) const;
 
   // What sample_dir reads of lobe i, in one 24-byte record: its vMF and its
   // bin of an alias table over the lobe weights (Walker 1977, Vose 1991):

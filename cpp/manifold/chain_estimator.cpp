@@ -705,8 +705,11 @@ double ChainEstimator::guided_trace_pdf(const Vec3& xD, size_t k, int n, uint16_
 double ChainEstimator::leaf_trace_pdf(const ChainDistribution& leaf, size_t k, int n, uint16_t bits,
                                       const Vec3& xD, const Vec3& wD, uint64_t* lobes) const {
   if (lobes) *lobes += leaf.lobe_count(n, bits);
-  return double(light_dist_.pmf(k)) * double(leaf.pmf_n(n)) * double(leaf.pmf_tau(n, bits)) *
-         double(leaf.pdf_dir(n, bits, xD, wD));
+  // (with trace_defensive the direction's density is the mixture guided_trace_one draws from)
+  const double pdir = p_.trace_defensive > 0.f
+                          ? leaf.pdf_dir_defensive(n, bits, xD, wD, double(p_.trace_defensive), p_.trace_defensive_kappa)
+                          : double(leaf.pdf_dir(n, bits, xD, wD));
+  return double(light_dist_.pmf(k)) * double(leaf.pmf_n(n)) * double(leaf.pmf_tau(n, bits)) * pdir;
 }
 
 Color ChainEstimator::guided_trace(const SurfaceInteraction& si, const BSDFContext& ctx, uint32_t depth,
@@ -736,6 +739,9 @@ ChainEstimator::TraceSample ChainEstimator::guided_trace_one(const SurfaceIntera
   const float u_n = rng.next_float(), u_t = rng.next_float();
   const double u_lobe = rng.next_double();
   const Vec2 u_dir(rng.next_float(), rng.next_float());
+  // (the defensive share's draw only when it is on: the traces' random
+  // streams, and so the images, are unchanged without it)
+  const bool defensive = p_.trace_defensive > 0.f && rng.next_float() < p_.trace_defensive;
   if (nmax < 1) return TraceSample{};
   const size_t k = light_dist_.sample(u_light);
   const Emitter& em = scene_.emitters[size_t(chain_lights_[k])];
@@ -747,7 +753,10 @@ ChainEstimator::TraceSample ChainEstimator::guided_trace_one(const SurfaceIntera
   if (n < 1 || n > nmax) return TraceSample{};
   const int t = leaf->sample_type(n, u_t);
   Vec3 wD;
-  if (t < 0 || !leaf->sample_dir_of(t, u_lobe, u_dir, si.p, wD)) return TraceSample{};
+  if (t < 0 || !leaf->sample_dir_of(t, u_lobe, u_dir, si.p, wD,
+                                    defensive ? p_.trace_defensive_kappa : std::numeric_limits<float>::infinity()))
+    return TraceSample{};
+  if (defensive) st.guided_traces_defensive++;
   const uint16_t bits = leaf->type_tau(t);
   const Color f = scene_.bsdfs.eval(ctx, si.wi, wD);
   if (is_black(f)) return TraceSample{};

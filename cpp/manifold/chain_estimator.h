@@ -99,6 +99,13 @@ struct ChainParams {
   // chain, combined with the BSDF-sampled paths by the balance heuristic, k g
   // against b (design-notes, "The guided trace of handed-off pixels").
   int handoff_guided = 0;
+  // ... each trace's direction drawn, with this probability, from the leaf's
+  // lobes with kappa capped at trace_defensive_kappa (0: never): the broad
+  // share covers chain paths of a known type a few lobe widths off the
+  // learned lobes, which the BSDF sample would otherwise bring alone at
+  // weight ~1 (design-notes, "The guided trace's defensive lobes")
+  float trace_defensive = 0.f;
+  float trace_defensive_kappa = 400.f;   // (mpg's defaults: guiding.TRACE_DEFENSIVE, _KAPPA)
   // ... and at the separators after a path's first in such pixels, the chain
   // estimator at this rate (0: none, the path tracer's there too). The
   // hand-off is learned for the first separator; a later one is reached by

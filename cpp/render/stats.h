@@ -219,6 +219,7 @@ struct Stats {
   uint64_t glint_pt_dropped = 0;
   uint64_t lt_pt_dropped = 0;        // path-tracer contributions (light hits; glossy mode: NEE too) whose path the photons bring
   uint64_t guided_traces = 0;        // handoff_guided: traces drawn from a leaf in rate-0 pixels (and training's records)
+  uint64_t guided_traces_defensive = 0;   // ... of which drawn from the defensive lobes (trace_defensive)
   uint64_t guided_trace_hits = 0;    // ... that reached their light through the drawn letters
   std::vector<SubpathSample> subpaths;  // recorded in training passes
   // the largest chain estimate (luminance) and its factors: where the heavy tail comes from
@@ -262,6 +263,7 @@ struct Stats {
     lt_photons += o.lt_photons; lt_rays += o.lt_rays; lt_splats += o.lt_splats; lt_rejected += o.lt_rejected;
     lt_chain_tries += o.lt_chain_tries; lt_chain_splats += o.lt_chain_splats;
     guided_traces += o.guided_traces;
+    guided_traces_defensive += o.guided_traces_defensive;
     trace_rays += o.trace_rays;
     trace_lobes += o.trace_lobes;
     trace_pt_lobes += o.trace_pt_lobes;
@@ -304,6 +306,7 @@ struct Stats {
             {"lt_splats", double(lt_splats)}, {"lt_rejected", double(lt_rejected)},
             {"lt_chain_tries", double(lt_chain_tries)}, {"lt_chain_splats", double(lt_chain_splats)},
             {"guided_traces", double(guided_traces)},
+            {"guided_traces_defensive", double(guided_traces_defensive)},
             {"guided_trace_hits", double(guided_trace_hits)},
             {"subpath_samples", double(subpaths.size())},
             {"max_chain_value", max_chain_value}, {"max_chain_K", max_chain_K},

@@ -161,6 +161,10 @@ TRACE_MIN_HITS = None
 # per sample (design-notes "Splitting the pixels"; docs/results.md, eleventh session)
 PIXEL_SPLIT = "mse"
 PIXEL_SPLIT_MAX_COST = 1.1
+# The guided traces' defensive share and its lobes' kappa cap (design-notes
+# "The guided trace's defensive lobes")
+TRACE_DEFENSIVE = 0.0
+TRACE_DEFENSIVE_KAPPA = 400.0
 PIXEL_SPLIT_ONLINE = True
 # Photons whose sub-path samples join every training guide (photon_guide;
 # design-notes "Photons in every guide"; docs/results.md, twenty-eighth
@@ -472,6 +476,11 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     params["known_types"] = _as_bool("known_types", params.pop("known_types", KNOWN_TYPES))
     params["handoff_guided"] = int(params.pop("handoff_guided", HANDOFF_GUIDED))
     params["handoff_deep"] = float(params.pop("handoff_deep", HANDOFF_DEEP))
+    # trace_defensive: each guided trace's direction, with this probability,
+    # from the leaf's lobes with kappa capped at trace_defensive_kappa
+    # (design-notes "The guided trace's defensive lobes"); checked by the core
+    params["trace_defensive"] = float(params.pop("trace_defensive", TRACE_DEFENSIVE))
+    params["trace_defensive_kappa"] = float(params.pop("trace_defensive_kappa", TRACE_DEFENSIVE_KAPPA))
     # handoff_all: every pixel handed off with this many guided traces in
     # place of the learned maps (design-notes "Every pixel handed off")
     handoff_all = _handoff_all_param(params.pop("handoff_all", HANDOFF_ALL))

@@ -36,7 +36,8 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "chain_handoff_negligible",
                 "delta_split", "pixel_split", "pixel_split_max_cost", "pixel_split_online", "limit_in_training", "known_types",
                 "handoff_guided", "handoff_deep", "learn_trace", "trace_tails", "joint_maps",
-                "trace_min_hits", "joint_min_samples", "delta_plain", "handoff_all", "handoff_all_deep"}
+                "trace_min_hits", "joint_min_samples", "delta_plain", "handoff_all", "handoff_all_deep",
+                "trace_defensive", "trace_defensive_kappa"}
 BOOL_PARAMS = {"hide_emitters", "delta_split_sobol", "light_trace_through", "light_trace_area", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "mis_rate", "chain_handoff", "limit_in_training", "known_types",
                "learn_trace", "trace_tails", "joint_maps", "delta_plain", "pixel_split_online", "handoff_all_deep"}
@@ -124,7 +125,7 @@ def _resolve_integrator(scene: Scene, integrator) -> tuple[str, dict, list[str]]
               "guide_fraction", "training_guide_fraction", "training_fraction", "stree_c",
               "stree_epsilon", "chain_rate",
               "chain_rate_min", "chain_rate_train", "chain_handoff_negligible", "light_trace",
-              "light_trace_glossy", "glints", "handoff_deep"):
+              "light_trace_glossy", "glints", "handoff_deep", "trace_defensive", "trace_defensive_kappa"):
         if k == "chain_rate" and name == "mpg" and str(core_params.get(k)).strip().lower() == "auto":
             if "guide" in core_params:
                 raise RenderError("chain_rate 'auto' is learned by mpg's training loop; "
