@@ -164,8 +164,9 @@ PIXEL_SPLIT_MAX_COST = 1.1
 # The guided traces' defensive share and its lobes' kappa cap (design-notes
 # "The guided trace's defensive lobes"): against none, seeds' variance 1.20x
 # lower on double_slabs (20 s), 1.37x on the ring, 2.1x on visibility_4
-# (10 s), 2.7x on the slab (20 s); the sphere (5 s, 16 seeds) 0.95x, the
-# pool 0.95x and chain_length_4 level (10 s); kappa 100 and 1500, or a
+# (10 s), 2.7x on the slab (20 s); the sphere 0.95x at 5 s (16 seeds) and
+# 0.86x at 20 s (8; relMSE equal), the pool 0.95x, emitter_size_010 0.88x,
+# chain_length_4 level (10 s); kappa 100 and 1500, or a
 # share of 0.2, gained less on double_slabs (docs/results.md, thirty-eighth
 # session)
 TRACE_DEFENSIVE = 0.35
