@@ -331,17 +331,22 @@ def test_pmfs_are_normalised():
     assert checked > 5
 
 
-def test_vmf_mixture_sampler_matches_its_density():
-    """Chi-square of a leaf's mixture sampler against its pdf (significance 1e-4)."""
-    rng = np.random.default_rng(3)
-    N = 60
-    d = rng.normal(size=(N, 3)) + np.array([0, 0, 2.0])
+def _one_leaf(rng, d: np.ndarray):
+    """A guide of one leaf (c = 100) holding directions d, all of type (2, TT)."""
+    N = len(d)
     xD = np.zeros((N, 3), np.float32)
     xL = np.zeros((N, 3), np.float32)
     g = _core.GuidingState()
     g.build(xD, xL, d.astype(np.float32), np.full(N, 2, np.int32), np.zeros(N, np.uint16),
             rng.exponential(size=N).astype(np.float32), [-1, -1, -1], [1, 1, 1], c=100.0)
     assert g.num_leaves == 1
+    return g
+
+
+def test_vmf_mixture_sampler_matches_its_density():
+    """Chi-square of a leaf's mixture sampler against its pdf (significance 1e-4)."""
+    rng = np.random.default_rng(3)
+    g = _one_leaf(rng, rng.normal(size=(60, 3)) + np.array([0, 0, 2.0]))
     M = 400000
     s = g.sample_dir(0, 2, 0, uniform_u(M, 3, 4))
     assert np.isfinite(s).all()
@@ -356,14 +361,8 @@ def test_defensive_lobes_sampler_matches_its_density():
     (chi-square, significance 1e-4), the mixture is the two densities'
     convex combination, and a cap above every lobe's kappa changes nothing."""
     rng = np.random.default_rng(11)
-    N = 60
-    d = rng.normal(scale=0.05, size=(N, 3)) + np.array([0, 0, 1.0])   # sharp lobes (kappa ~ 1e3-1e5)
-    xD = np.zeros((N, 3), np.float32)
-    xL = np.zeros((N, 3), np.float32)
-    g = _core.GuidingState()
-    g.build(xD, xL, d.astype(np.float32), np.full(N, 2, np.int32), np.zeros(N, np.uint16),
-            rng.exponential(size=N).astype(np.float32), [-1, -1, -1], [1, 1, 1], c=100.0)
-    assert g.num_leaves == 1
+    # sharp lobes (kappa ~ 1e3-1e5)
+    g = _one_leaf(rng, rng.normal(scale=0.05, size=(60, 3)) + np.array([0, 0, 1.0]))
     cap = 30.0
     M = 400000
     s = g.sample_dir(0, 2, 0, uniform_u(M, 3, 12), kappa_cap=cap)
