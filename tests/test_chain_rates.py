@@ -527,6 +527,19 @@ def test_handoff_deep_off_leaves_the_render_as_it_was(scenes_dir):
             mpg.render(sc, integrator=dict(base, handoff_deep=bad), spp=1, progress=False, chain_rate_map=zero)
 
 
+def test_chain_maps_with_no_chain_estimator_are_named_as_ignored(scenes_dir):
+    """The per-pixel maps only the chain estimator reads (chain_rate_map,
+    guided_trace_map, deep_rate_map), given to `path`, leave its image as it
+    was and are named in a warning, not dropped silently."""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
+    half = np.full((16, 16), 0.5, np.float32)
+    plain = mpg.render(sc, integrator="path", spp=4, seed=3, progress=False)
+    assert not any("ignored" in w for w in plain.stats["warnings"])
+    img = mpg.render(sc, integrator="path", spp=4, seed=3, progress=False, chain_rate_map=half, deep_rate_map=half)
+    assert np.array_equal(img.rgb, plain.rgb)
+    assert any("chain_rate_map, deep_rate_map ignored" in w for w in img.stats["warnings"])
+
+
 def test_a_deep_rate_map_replaces_handoff_deep_per_pixel(scenes_dir):
     """deep_rate_map: the later separators' rate per pixel. A map of
     handoff_deep everywhere renders the image without it, bit for bit; a map

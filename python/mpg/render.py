@@ -388,6 +388,11 @@ def render(
         warnings.append(
             f"'{name}': the scene has no shape the manifold walk supports (smooth dielectric or "
             f"conductor, no normal map) or no point/spot/area emitter; {rest}")
+    # maps that only the chain estimator reads: said, not silently dropped
+    chain_maps = [nm for nm, m in (("chain_rate_map", chain_rate_map), ("guided_trace_map", guided_trace_map),
+                                   ("deep_rate_map", deep_rate_map)) if m is not None]
+    if chain_maps and (name == "path" or not integ.chains_active):
+        warnings.append(f"'{name}' runs no chain estimator on this scene: {', '.join(chain_maps)} ignored")
     # (mpg traces its area lights by default: where it cannot, the estimator
     # keeps them as before, and only an explicit request warns)
     kinds = [k for k, on in (("point/spot", integ.chains_delta_lights),
