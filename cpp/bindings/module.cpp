@@ -1011,8 +1011,7 @@ PYBIND11_MODULE(_core, m) {
         FArray out(std::vector<ssize_t>{u.shape(0), 3});
         for (ssize_t i = 0; i < u.shape(0); ++i) {
           Vec3 w(0.f);
-          const int t = d.find_type_index(n, tau);
-          if (t < 0 || !d.sample_dir_of(t, u.at(i, 0), Vec2(u.at(i, 1), u.at(i, 2)), p, w, kappa_cap)) w = Vec3(0.f);
+          if (!d.sample_dir(n, tau, u.at(i, 0), Vec2(u.at(i, 1), u.at(i, 2)), p, w, kappa_cap)) w = Vec3(0.f);
           out.mutable_at(i, 0) = w.x; out.mutable_at(i, 1) = w.y; out.mutable_at(i, 2) = w.z;
         }
         return out;

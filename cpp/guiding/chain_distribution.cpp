@@ -307,26 +307,14 @@ bool ChainDistribution::sample_dir_of(int t, double u_lobe, const Vec2& u, const
 }
 
 bool ChainDistribution::sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, const Vec3& xD,
-                                   Vec3& dir) const {
+                                   Vec3& dir, float kappa_cap) const {
   const int t = find_type(n, tau);
-  return t >= 0 && sample_dir_of(t, u_lobe, u, xD, dir);
+  return t >= 0 && sample_dir_of(t, u_lobe, u, xD, dir, kappa_cap);
 }
 
 float ChainDistribution::pdf_dir(int n, uint16_t tau, const Vec3& xD, const Vec3& dir) const {
-  const int t = find_type(n, tau);
-  if (t < 0) return 0.f;
-  const Type& ty = types_[size_t(t)];
-  double p = 0.0;
-  for (uint32_t i = ty.first; i < ty.first + ty.count; ++i) {
-    // A lobe whose exponent is below -40 adds less than e^-40 of its peak: left
-    // out (the guided trace evaluates this for every path it shares, over all
-    // of a leaf's lobes; the skip makes most of them a dot product).
-    const double c = double(glm::dot(centre(lobes_[i], xD), dir));
-    const double k = double(lobes_[i].kappa);
-    if (k * (1.0 - std::min(c, 1.0)) > 40.0) continue;
-    p += double(lobe_pmf_[i]) * warp::vmf_pdf_cos(c, k);
-  }
-  return float(p);
+  // (no cap: every lobe takes the loop's uncapped branch, the sum is its p)
+  return float(pdf_dir_defensive(n, tau, xD, dir, 0.0, std::numeric_limits<float>::infinity()));
 }
 
 double ChainDistribution::pdf_dir_defensive(int n, uint16_t tau, const Vec3& xD, const Vec3& dir, double beta,
@@ -336,10 +324,12 @@ double ChainDistribution::pdf_dir_defensive(int n, uint16_t tau, const Vec3& xD,
   const Type& ty = types_[size_t(t)];
   double p = 0.0, pd = 0.0;
   const double cap = double(kappa_cap);
-  const double norm_cap = warp::vmf_norm(cap);   // (cap >= 1e-3: the callers check it)
+  const double norm_cap = warp::vmf_norm(cap);   // (cap >= 1e-3: the callers check it; inf for pdf_dir, unused)
   for (uint32_t i = ty.first; i < ty.first + ty.count; ++i) {
-    // (pdf_dir's skip of terms below e^-40 of their peak, per kappa; the
-    // capped kappa is the smaller, so past its bound both terms are)
+    // A term below e^-40 of its lobe's peak is left out (the guided trace
+    // evaluates this for every path it shares, over all of a leaf's lobes;
+    // the skip makes most of them a dot product); per kappa, and the capped
+    // kappa is the smaller, so past its bound both terms are.
     const double c = double(glm::dot(centre(lobes_[i], xD), dir));
     const double k = double(lobes_[i].kappa);
     if (!(k > cap)) {

@@ -53,12 +53,14 @@ class ChainDistribution {
   float pmf_tau(int n, uint16_t tau) const;
   // Direction for (n, tau) at the query's x_D (which anchored lobes aim
   // from; unanchored ones ignore it); density is per solid angle.
-  bool sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, const Vec3& xD, Vec3& dir) const;
+  // (kappa_cap: each lobe's kappa capped there, pdf_dir_defensive's broad share)
+  bool sample_dir(int n, uint16_t tau, double u_lobe, const Vec2& u, const Vec3& xD, Vec3& dir,
+                  float kappa_cap = std::numeric_limits<float>::infinity()) const;
   float pdf_dir(int n, uint16_t tau, const Vec3& xD, const Vec3& dir) const;
   // The guided trace's direction density with a defensive share: (1 - beta)
   // pdf_dir + beta times the same mixture with every lobe's kappa capped at
   // kappa_cap (design-notes "The guided trace's defensive lobes"), which
-  // sample_dir_of(..., kappa_cap) draws. beta = 0: pdf_dir in double.
+  // sample_dir_of(..., kappa_cap) draws. pdf_dir is this at beta 0, no cap.
   double pdf_dir_defensive(int n, uint16_t tau, const Vec3& xD, const Vec3& dir, double beta,
                            float kappa_cap) const;
   // The lobes pdf_dir visits for (n, tau): its cost (one dot product each)
@@ -73,7 +75,6 @@ class ChainDistribution {
   int sample_type(int n, float u) const;
   // Does the leaf hold a sample of type (n, tau)?
   bool has_type(int n, uint16_t tau) const { return find_type(n, tau) >= 0; }
-  int find_type_index(int n, uint16_t tau) const { return find_type(n, tau); }   // (-1: none)
   uint16_t type_tau(int t) const { return types_[size_t(t)].tau; }
   // (kappa_cap: the lobe's kappa capped there, pdf_dir_defensive's broad share)
   bool sample_dir_of(int t, double u_lobe, const Vec2& u, const Vec3& xD, Vec3& dir,
