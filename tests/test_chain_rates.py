@@ -326,10 +326,12 @@ def test_a_rate_map_sets_the_roulette_per_pixel(scenes_dir):
 def test_the_handoff_waits_for_enough_training(scenes_dir):
     """By default the hand-off (rate 0) needs HANDOFF_MIN_TRAINING training
     spp: with fewer it is off and says why (no pixel at rate 0, no hand-off
-    split), chain_handoff=true keeps it, and a longer training turns it on."""
+    split), chain_handoff=true keeps it, and a longer training turns it on.
+    (handoff_all 0 throughout: handoff_all=auto does not wait, below.)"""
     from mpg.guiding import HANDOFF_MIN_TRAINING
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
-    short = mpg.render(sc, integrator={"type": "mpg", "pixel_split": "handoff"}, spp=24, seed=3, progress=False)
+    short = mpg.render(sc, integrator={"type": "mpg", "pixel_split": "handoff", "handoff_all": 0}, spp=24, seed=3,
+                       progress=False)
     assert short.stats["spp_training"] < HANDOFF_MIN_TRAINING
     assert short.stats["chain_handoff"] == (f"off: {short.stats['spp_training']} training spp, "
                                             f"fewer than {HANDOFF_MIN_TRAINING}")
@@ -340,7 +342,8 @@ def test_the_handoff_waits_for_enough_training(scenes_dir):
     asked = mpg.render(sc, integrator={"type": "mpg", "chain_handoff": True, "handoff_all": 0}, spp=24, seed=3,
                        progress=False)
     assert asked.stats["chain_handoff"] == "on"
-    hits = mpg.render(sc, integrator={"type": "mpg", "trace_min_hits": 16}, spp=24, seed=3, progress=False)
+    hits = mpg.render(sc, integrator={"type": "mpg", "trace_min_hits": 16, "handoff_all": 0}, spp=24, seed=3,
+                      progress=False)
     assert any("trace_min_hits" in w and "ignored" in w for w in hits.stats["warnings"])
     long = mpg.render(sc, integrator={"type": "mpg", "handoff_all": 0}, spp=128, seed=3, progress=False)
     assert long.stats["spp_training"] >= HANDOFF_MIN_TRAINING and long.stats["chain_handoff"] == "on"
@@ -1127,6 +1130,16 @@ def test_handoff_all_auto_renders_the_choice_it_names(scenes_dir, monkeypatch):
         img = run(handoff_all="auto", **extra)
         assert img.stats["handoff_all"] == 0 and not any("handoff_all" in w for w in img.stats["warnings"])
         assert np.array_equal(img.rgb, run(handoff_all=0, **extra).rgb)
+    # below HANDOFF_MIN_TRAINING, where the per-pixel hand-off waits, the
+    # choice is made all the same (the model of every pixel handed off is
+    # there), and renders what it names
+    short = mpg.render(sc, integrator=dict(base, handoff_all="auto"), spp=24, seed=5, progress=False)
+    assert short.stats["spp_training"] < G.HANDOFF_MIN_TRAINING
+    assert short.stats["handoff_all"] == G.HANDOFF_ALL_AUTO_K
+    assert short.stats["chain_handoff"].startswith("all: handoff_all=auto")
+    assert np.all(short.chain_rate_map == 0.0)
+    fixed = mpg.render(sc, integrator=dict(base, handoff_all=G.HANDOFF_ALL_AUTO_K), spp=24, seed=5, progress=False)
+    assert np.array_equal(short.rgb, fixed.rgb)
 
 
 def test_every_pixel_handed_off_stays_unbiased(scenes_dir):
@@ -1213,3 +1226,25 @@ def test_handoff_all_replaces_the_learned_maps_or_says_why_not(scenes_dir, monke
         assert any("handoff_all=2 is ignored" in w and why in w for w in img.stats["warnings"])
         assert img.stats["handoff_all"] == 0
         assert np.array_equal(img.rgb, mpg.render(sc, integrator=kw, spp=48, seed=1, progress=False).rgb)
+
+
+def test_every_pixel_handed_off_is_modelled_before_the_hand_off_opens():
+    """Below HANDOFF_MIN_TRAINING the per-pixel hand-off is off (handoff
+    False), but the rates' model of every pixel at rate 0 with k traces
+    (chain_rate_model_v_all<k>, handoff_all=auto's input) is made from the
+    trace records all the same; no pixel gets rate 0."""
+    from mpg.chain_rates import learn_rates_traced
+    a = _trace_acc(6, 30)
+    n = a.n
+    for k in (1, 2, 4, 8):
+        getattr(a, f"trace{k}_sum")[...] = 3.0 * n
+        getattr(a, f"trace{k}_sum_sq")[...] = (1.0 + 9.0) * n
+    a.trace_rays[...] = 10.0 * n
+    a.trace_hits[...] = 64.0
+    q_on, _, on = learn_rates_traced(a, handoff=True, trace=True, objective="mse")
+    q_off, t_off, off = learn_rates_traced(a, handoff=False, trace=True, objective="mse")
+    assert np.any(q_on == 0.0) and np.all(q_off > 0.0) and not np.any(t_off)
+    for k in (1, 2, 4, 8):
+        assert off[f"chain_rate_model_v_all{k}"] == pytest.approx(on[f"chain_rate_model_v_all{k}"])
+        assert off[f"chain_rate_model_c_all{k}"] == pytest.approx(on[f"chain_rate_model_c_all{k}"])
+    assert "chain_rate_model_v_all2" not in learn_rates_traced(a, handoff=False, trace=False)[2]

@@ -335,41 +335,46 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
         alt_mse = _alt_mse(acc, n, mean)
         # V1 = w var_t - (1/q_t - 1) M, the pixel's variance at q = 1 (weighted)
         dv_b = _box_blur(wgt * alt_mse - wgt * var_t + (1.0 / q_t - 1.0) * m2, radius, nonneg=False)
-        # ... but only where the window saw the path tracer find that light
-        # often (its second moment from a few rare hits -- a dim reflection
-        # caustic of a small light -- is mostly an underestimate), or where the
-        # chains' light cannot matter: E[X]^2 <= E[X^2] below HANDOFF_NEGLIGIBLE
-        # of the pixel's own variance per sample (double_slabs: the glints of
-        # the light in the slabs' bumpy tops set the variance). Not the window's
-        # mean variance: one glint of a tiny light (emitter_size_003) set the
-        # window mean of every pixel around it, and the whole 7x7 window lost
-        # its caustic to the path tracer, which never finds that light (black
-        # squares, relMSE 0.83-0.91 against sms_star's 0.04-0.08)
-        negl = _negligible_chain_light(m2_raw, var_t, radius, negligible)
+    # Rate 0 is open to a pixel only where the window saw the path tracer
+    # find that light often (its second moment from a few rare hits -- a dim
+    # reflection caustic of a small light -- is mostly an underestimate), or where the
+    # chains' light cannot matter: E[X]^2 <= E[X^2] below HANDOFF_NEGLIGIBLE
+    # of the pixel's own variance per sample (double_slabs: the glints of
+    # the light in the slabs' bumpy tops set the variance). Not the window's
+    # mean variance: one glint of a tiny light (emitter_size_003) set the
+    # window mean of every pixel around it, and the whole 7x7 window lost
+    # its caustic to the path tracer, which never finds that light (black
+    # squares, relMSE 0.83-0.91 against sms_star's 0.04-0.08)
+    negl = _negligible_chain_light(m2_raw, var_t, radius, negligible)
+    if handoff:
         eligible = has & ((_box_blur(finite(acc.alt_hits), radius, total=True) >= min_hits) | negl)
-        if trace and float(np.sum(finite(acc.trace_rays))) > 0.0:
-            # the guided trace's forms of rate 0 (the traces' rays per sample added)
-            # (recorded in one sample of four, whose hits must reach trace_min_hits.
-            # Their rare large values -- g small where the lobes miss part of a
-            # small light's image -- are what a short record misses: pool's
-            # traced pixels rendered 15x the chains' variance where the record
-            # had seen the traces 3x better; requiring the path tracer's own
-            # min_hits as well left no traced pixel on double_slabs either.
-            # Hence `tails`: the chains' view of those values, below.)
-            n_t = np.maximum(finite(acc.trace_n), 1.0)
-            el = has & ~negl & (_box_blur(finite(acc.trace_hits), radius, total=True) >= trace_min_hits)
-            # one trace's cost per sample, and the path tracer's weights' (any k)
-            ray1 = (finite(acc.trace_rays) + LOBE_COST * finite(acc.trace_lobes)) / (n_t * TRACES_RECORDED)
-            pt_w = LOBE_COST * finite(acc.trace_pt_lobes) / n_t
-            for k in TRACE_KS:
-                mse_k = _alt_mse(acc, finite(acc.trace_n), mean, f"trace{k}", n_all=n) + \
-                    (1.0 / k - 1.0 / TRACES_RECORDED) * finite(getattr(acc, f"trace{k}_var")) / n_t
-                if tails:
-                    mse_k = mse_k + (finite(getattr(acc, f"trace{k}_tail")) -
-                                     finite(getattr(acc, f"trace{k}_seen"))) / n_t
-                dvt = _box_blur(wgt * np.maximum(mse_k, 0.0) - wgt * var_t + (1.0 / q_t - 1.0) * m2,
-                                radius, nonneg=False)
-                traced.append((k, dvt, _box_blur(k * ray1 + pt_w, radius), el))
+    # (the traces' forms are modelled without the per-pixel hand-off too: the
+    # model of every pixel handed off, chain_rate_model_*_all<k>, for
+    # handoff_all=auto, whose choice does not wait for HANDOFF_MIN_TRAINING;
+    # no pixel may choose them then)
+    if trace and float(np.sum(finite(acc.trace_rays))) > 0.0:
+        # the guided trace's forms of rate 0 (the traces' rays per sample added)
+        # (recorded in one sample of four, whose hits must reach trace_min_hits.
+        # Their rare large values -- g small where the lobes miss part of a
+        # small light's image -- are what a short record misses: pool's
+        # traced pixels rendered 15x the chains' variance where the record
+        # had seen the traces 3x better; requiring the path tracer's own
+        # min_hits as well left no traced pixel on double_slabs either.
+        # Hence `tails`: the chains' view of those values, below.)
+        n_t = np.maximum(finite(acc.trace_n), 1.0)
+        el = has & ~negl & (_box_blur(finite(acc.trace_hits), radius, total=True) >= trace_min_hits) & handoff
+        # one trace's cost per sample, and the path tracer's weights' (any k)
+        ray1 = (finite(acc.trace_rays) + LOBE_COST * finite(acc.trace_lobes)) / (n_t * TRACES_RECORDED)
+        pt_w = LOBE_COST * finite(acc.trace_pt_lobes) / n_t
+        for k in TRACE_KS:
+            mse_k = _alt_mse(acc, finite(acc.trace_n), mean, f"trace{k}", n_all=n) + \
+                (1.0 / k - 1.0 / TRACES_RECORDED) * finite(getattr(acc, f"trace{k}_var")) / n_t
+            if tails:
+                mse_k = mse_k + (finite(getattr(acc, f"trace{k}_tail")) -
+                                 finite(getattr(acc, f"trace{k}_seen"))) / n_t
+            dvt = _box_blur(wgt * np.maximum(mse_k, 0.0) - wgt * var_t + (1.0 / q_t - 1.0) * m2,
+                            radius, nonneg=False)
+            traced.append((k, dvt, _box_blur(k * ray1 + pt_w, radius), el))
     forms_dv = [dv_b] + [t[1] for t in traced]
     forms_dc = [-mis_b] + [t[2] - mis_b for t in traced]
     forms_ok = [eligible] + [t[3] for t in traced]
@@ -1046,3 +1051,4 @@ def learn_photon_rate(cam_var: float, cam_cost: float, lt_sum: np.ndarray, lt_su
                 light_trace_model_c_camera=c, light_trace_model_c_photon=d,
                 light_trace_model_gain=f(r0) / f(r) if f(r) > 0.0 else 1.0)
     return r, info
+
