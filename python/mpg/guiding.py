@@ -127,7 +127,13 @@ HANDOFF_ALL = "auto"
 # 0.87x at 20 s, chain_length_4 0.90-0.94x); the pool 12-14.6 (the traces
 # 4-5x worse there), emitter_size_010 10.6-42 (there they would gain 1.6x:
 # the ratio does not separate the two), emitter_size_003 62-86 (these keep
-# the learned maps)
+# the learned maps). The choice does not wait for HANDOFF_MIN_TRAINING
+# (thirty-ninth session; the model of every pixel handed off is made from
+# the trace records of any training): against the learned maps, seeds'
+# variance 1.9-2.1x lower on double_slabs at 3-5 s, 2.1x on the slab at 2 s,
+# 2.7x on visibility_4 at 3 s, 1.3x on the ring at 2 s; the sphere 0.67x at
+# 2 s, 0.93x at 3 s (relMSE level and 1.25x lower) and 0.91x at 1 s (48
+# seeds), chain_length_4 0.95x
 HANDOFF_ALL_AUTO_K = 2
 HANDOFF_ALL_AUTO_MAX = 8.0
 # handoff_all's pixels run the estimator at the separators after a path's
