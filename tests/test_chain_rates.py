@@ -1132,7 +1132,7 @@ def test_handoff_all_auto_renders_the_choice_it_names(scenes_dir, monkeypatch):
         assert np.array_equal(img.rgb, run(handoff_all=0, **extra).rgb)
     # below HANDOFF_MIN_TRAINING, where the per-pixel hand-off waits, the
     # choice is made all the same (the model of every pixel handed off is
-    # there), and renders what it names
+    # there; the bound still unbounded), and renders what it names
     short = mpg.render(sc, integrator=dict(base, handoff_all="auto"), spp=24, seed=5, progress=False)
     assert short.stats["spp_training"] < G.HANDOFF_MIN_TRAINING
     assert short.stats["handoff_all"] == G.HANDOFF_ALL_AUTO_K

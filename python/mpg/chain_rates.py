@@ -337,8 +337,8 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
         dv_b = _box_blur(wgt * alt_mse - wgt * var_t + (1.0 / q_t - 1.0) * m2, radius, nonneg=False)
     # Rate 0 is open to a pixel only where the window saw the path tracer
     # find that light often (its second moment from a few rare hits -- a dim
-    # reflection caustic of a small light -- is mostly an underestimate), or where the
-    # chains' light cannot matter: E[X]^2 <= E[X^2] below HANDOFF_NEGLIGIBLE
+    # reflection caustic of a small light -- is mostly an underestimate), or
+    # where the chains' light cannot matter: E[X]^2 <= E[X^2] below HANDOFF_NEGLIGIBLE
     # of the pixel's own variance per sample (double_slabs: the glints of
     # the light in the slabs' bumpy tops set the variance). Not the window's
     # mean variance: one glint of a tiny light (emitter_size_003) set the
@@ -1051,4 +1051,3 @@ def learn_photon_rate(cam_var: float, cam_cost: float, lt_sum: np.ndarray, lt_su
                 light_trace_model_c_camera=c, light_trace_model_c_photon=d,
                 light_trace_model_gain=f(r0) / f(r) if f(r) > 0.0 else 1.0)
     return r, info
-
