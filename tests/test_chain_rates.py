@@ -765,6 +765,15 @@ def test_the_chains_sample_the_rate_zero_forms_second_moments(scenes_dir, rate):
     assert np.all(np.abs(t.sum(axis=0) / s.sum(axis=0) - 1) < 0.15), t.sum(axis=0) / s.sum(axis=0)
 
 
+def _traces_halve_the_variance(a, rays):
+    """_trace_acc's records with every k's values at the mean 3 and variance
+    1 (the path tracer alone's 2 halved), the traces' `rays` per sample."""
+    for k in (1, 2, 4, 8):
+        getattr(a, f"trace{k}_sum")[...] = 3.0 * a.n
+        getattr(a, f"trace{k}_sum_sq")[...] = (1.0 + 9.0) * a.n
+    a.trace_rays[...] = rays * a.n
+
+
 def _trace_acc(h, w):
     """An accumulator of chain pixels at rate 1/8 (M 40, chain cost 5e3 rays
     at rate 1 against 1e3), the path tracer alone as good as the chains at
@@ -970,11 +979,7 @@ def test_trace_forms_need_trace_min_hits_and_the_path_tracer_alone_its_own():
     for 10 rays."""
     from mpg.chain_rates import learn_rates_traced
     a = _trace_acc(6, 12)
-    n = a.n
-    for k in (1, 2, 4, 8):
-        getattr(a, f"trace{k}_sum")[...] = 3.0 * n
-        getattr(a, f"trace{k}_sum_sq")[...] = (1.0 + 9.0) * n
-    a.trace_rays[...] = 20.0 * n
+    _traces_halve_the_variance(a, rays=20.0)
     a.trace_hits[:, :6] = 32.0
     a.trace_hits[:, 6:] = 8.0
     kw = dict(radius=0, objective="mse", trace=True, tails=False)
@@ -1235,11 +1240,7 @@ def test_every_pixel_handed_off_is_modelled_before_the_hand_off_opens():
     trace records all the same; no pixel gets rate 0."""
     from mpg.chain_rates import learn_rates_traced
     a = _trace_acc(6, 30)
-    n = a.n
-    for k in (1, 2, 4, 8):
-        getattr(a, f"trace{k}_sum")[...] = 3.0 * n
-        getattr(a, f"trace{k}_sum_sq")[...] = (1.0 + 9.0) * n
-    a.trace_rays[...] = 10.0 * n
+    _traces_halve_the_variance(a, rays=10.0)
     a.trace_hits[...] = 64.0
     q_on, _, on = learn_rates_traced(a, handoff=True, trace=True, objective="mse")
     q_off, t_off, off = learn_rates_traced(a, handoff=False, trace=True, objective="mse")
