@@ -283,10 +283,38 @@ def test_refiner_pools_the_renders_variance_into_eq4():
     kc, infoc = capped.update(ks, ks2, kn, n)
     assert infoc["pixel_split_online_cost"] <= 1.05 + 1e-9 and np.all(kc <= k)
     assert 0.0 < infoc["pixel_split_online_scale"] < 1.0
-    with pytest.raises(ValueError, match="at least 2 spp"):
-        PixelSplitRefiner(_acc(var_t, rays, n=1), q, ones)
     with pytest.raises(ValueError, match="at least 2 samples"):
         ref.update(ks, ks2, kn, 1)
+
+
+def test_refiner_after_one_training_spp_learns_from_the_render_alone():
+    """A training of 1 spp has the costs but no variance: the refiner's own
+    map (solve) splits nothing, and its updates solve Eq. 4 for the render's
+    own variance alone, n_t = 0 (a short render's training: the sphere at
+    1 s trains 1 spp in most fresh processes). A training of 0 spp has no
+    costs: an error."""
+    rng = np.random.default_rng(5)
+    rays = rng.uniform(2.0, 8.0, (8, 8))
+    q, ones = np.ones((8, 8), np.float32), np.ones((8, 8))
+    acc = _acc(np.zeros((8, 8)), rays, n=1)
+    acc.sum_sq = rng.uniform(0.0, 5.0, (8, 8, 3))   # (one sample: its square says nothing of a variance)
+    ref = PixelSplitRefiner(acc, q, ones, radius=0, objective="mse")
+    k0, info0 = ref.solve()
+    assert np.all(k0 == 1) and info0["pixel_split_fraction"] == 0.0
+    n = 12
+    v_r = rng.uniform(0.5, 1.0, (8, 8))
+    v_r[2, 5] = 400.0
+    kn = np.full((8, 8), float(n))
+    ks = np.full((8, 8, 3), 0.5 * n)
+    ks2 = np.repeat((v_r * (n - 1) / n + 0.25)[..., None] * n, 3, axis=2)
+    k, info = ref.update(ks, ks2, kn, n)
+    c_mean, v_mean = float(np.mean(k * rays)), float(np.mean(v_r / k))
+    np.testing.assert_array_equal(k, np.clip(np.rint(np.sqrt(v_r * c_mean / (rays * v_mean))), 1, 16))
+    assert k[2, 5] == 16 and np.all(np.isfinite(k))
+    empty = _acc(np.zeros((8, 8)), rays, n=1)
+    empty.n = 0
+    with pytest.raises(ValueError, match="at least 1 spp"):
+        PixelSplitRefiner(empty, q, ones)
 
 
 def test_sequence_epoch_salts_the_sobol_shifts_only(sphere):
@@ -368,3 +396,16 @@ def test_mpg_online_split_stays_unbiased(sphere, sphere32_path_ref):
     assert float(np.mean(off.pixel_split_map > 1)) == pytest.approx(off.stats["pixel_split_fraction"])
     with pytest.raises(mpg.RenderError, match="pixel_split_online"):
         mpg.render(sphere, {"type": "mpg", "pixel_split_online": "maybe"}, spp=4, progress=False)
+
+
+def test_mpg_online_split_after_one_training_spp_stays_unbiased(sphere, sphere32_path_ref):
+    """A training of 1 spp (training_fraction 0.003 of 384 spp) learns no maps,
+    yet the render refines a pixel split from its own samples (before, it
+    rendered unsplit); the image agrees with the path tracer (|z| < 5 on the
+    image and its quarters, p < 6e-7 each)."""
+    img = mpg.render(sphere, {"type": "mpg", "training_fraction": 0.003}, spp=384, seed=43, progress=False)
+    st = img.stats
+    assert st["spp_training"] == 1 and st["pixel_split_fraction"] == 0.0   # (no map from the training)
+    assert st["pixel_split_online_updates"] >= 2 and st["pixel_split_online_fraction"] > 0.0
+    assert st["pixel_split_samples"] > 0 and st["rejected_samples"] == 0
+    assert image_zmax(img, sphere32_path_ref, REGIONS) < 5

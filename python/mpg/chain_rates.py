@@ -842,21 +842,26 @@ def learn_pixel_split(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radiu
 def _pixel_split_model(acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radius: int, objective: str,
                        branched: bool | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """learn_pixel_split's per-pixel weight w, a sample's variance V and cost C
-    at the render's rates and delta splits, from the training (acc.n >= 2)."""
+    at the render's rates and delta splits, from the training (acc.n >= 1;
+    V needs 2 spp: from a training of 1 spp it is 0 everywhere, for the
+    render's own samples to fill in, PixelSplitRefiner)."""
     n = float(acc.n)
     q = np.asarray(q, dtype=float)
     kd = np.maximum(np.asarray(kd, dtype=float), 1.0)
     q_t, _, c1, mis, c0 = _costs(acc, n)
     mean = _finite(acc.sum) / n
-    var_t = _sample_variance(acc.sum, acc.sum_sq, n)
-    m2 = _finite(acc.chain_m2) / n
-    alt_mse = _alt_mse(acc, n, mean)
-    var_d = _sample_variance(acc.delta_sum, acc.delta_sum_sq, n)
     qc = np.clip(q, 1e-3, 1.0)
-    v = np.where(q > 0.0, var_t + (1.0 / qc - 1.0 / np.maximum(q_t, 1e-3)) * m2, alt_mse)
     br = _branch_where(branched, kd.shape) & (kd > 1.0)
-    kept = np.where(br, BRANCH_RESIDUAL, 1.0 / kd)
-    v = np.maximum(v - (1.0 - kept) * var_d, 0.0)
+    if n >= 2:
+        var_t = _sample_variance(acc.sum, acc.sum_sq, n)
+        m2 = _finite(acc.chain_m2) / n
+        alt_mse = _alt_mse(acc, n, mean)
+        var_d = _sample_variance(acc.delta_sum, acc.delta_sum_sq, n)
+        v = np.where(q > 0.0, var_t + (1.0 / qc - 1.0 / np.maximum(q_t, 1e-3)) * m2, alt_mse)
+        kept = np.where(br, BRANCH_RESIDUAL, 1.0 / kd)
+        v = np.maximum(v - (1.0 - kept) * var_d, 0.0)
+    else:
+        v = np.zeros(q.shape)
     o = 1.0 + _finite(acc.delta_rays) / n
     c = c0 + np.where(q > 0.0, qc * c1, -mis) + (kd - 1.0) * o * np.where(br, TREE_COST, 1.0)
     c = np.maximum(c, 1e-6)
@@ -930,16 +935,22 @@ class PixelSplitRefiner:
     after k was fixed, so E[sample | k] = I whatever earlier samples chose
     k, and the pixel is the plain mean of a number of samples the schedule
     fixes. (Each update starts a new epoch of the pixels' Sobol sequences in
-    the render, whose shifts the earlier samples never saw.)"""
+    the render, whose shifts the earlier samples never saw.)
+
+    A training of 1 spp (a short render's: the sphere at 1 s trains 1 or 3
+    spp, by a few ms of timing) has costs but no variance: its model's V is
+    0, `solve()` splits nothing, and the updates pool the render's own
+    estimate alone (n_t = 0)."""
 
     def __init__(self, acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radius: int = 1,
                  objective: str = "mse", k_max: int = PIXEL_SPLIT_MAX, iterations: int = 30,
                  where: np.ndarray | None = None, branched: bool | np.ndarray = False,
                  max_cost: float | None = None):
-        if acc.n < 2:
-            raise ValueError("the pixel split's refiner needs a training of at least 2 spp")
+        if acc.n < 1:
+            raise ValueError("the pixel split's refiner needs a training of at least 1 spp (its costs)")
         self.w, self.v, self.c = _pixel_split_model(acc, q, kd, radius, objective, branched)
-        self.n_t = float(acc.n)
+        # (a training of 1 spp has no variance: the render's own samples alone)
+        self.n_t = float(acc.n) if acc.n >= 2 else 0.0
         self.radius, self.k_max, self.iterations = radius, k_max, iterations
         self.where, self.max_cost = where, max_cost
         self.updates = 0

@@ -100,6 +100,18 @@ HANDOFF_GUIDED = 4
 # this rate at every separator after a path's first (design-notes "The later
 # separators of handed-off pixels"; 0: the path tracer's there too).
 HANDOFF_DEEP = 1.0
+# training_continue: under a time budget the last training iteration goes on
+# until the training budget is spent (MPG Sec. 5.8; render_mpg's training
+# loop). "auto" (the default): only where the iterations end with fewer than
+# 2 training spp, which learn no map (the sphere at 1 s in most fresh
+# processes: MSE 1.27x lower, 32 seeds); true: always, the paper's rule;
+# false: never. Always, against never, seeds' variance at 5 s (8 seeds;
+# docs/results.md, fortieth session): the ring 2.2x and emitter_size_010
+# 1.67x lower, double_slabs and the slab level, the pool, chain_length_4
+# and visibility_4 0.91-0.93x, the sphere 0.60x; double_slabs 0.78x at
+# 10 s and 0.93x at 20 s: the maps' thresholds were tuned on the shorter
+# trainings.
+TRAINING_CONTINUE = "auto"
 # The hand-off (rate 0, chain_handoff) needs this many training spp unless it
 # is asked for: with fewer, the window's estimate of the path tracer's
 # variance has not seen its tail and the hand-off loses the caustic. Sphere,
@@ -335,6 +347,13 @@ def _order_free_mean(w: np.ndarray) -> float:
     return float(np.sum(np.sort(np.asarray(w, dtype=np.float64))) / max(len(w), 1))
 
 
+def _training_continues(mode: bool | str, spp_train: int) -> bool:
+    """Whether the last training iteration continues to the training budget
+    (training_continue: True always, as MPG Sec. 5.8; "auto" only after
+    fewer than 2 training spp, which learn no map; False never)."""
+    return mode is True or (mode == "auto" and spp_train < 2)
+
+
 def _handoff_all_param(v) -> int | None:
     """handoff_all: "auto" (None) or a count of guided traces in 0..64, else
     a RenderError naming it."""
@@ -496,6 +515,14 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # handoff_all: every pixel handed off with this many guided traces in
     # place of the learned maps (design-notes "Every pixel handed off")
     handoff_all = _handoff_all_param(params.pop("handoff_all", HANDOFF_ALL))
+    training_continue = params.pop("training_continue", TRAINING_CONTINUE)
+    if not (isinstance(training_continue, str) and training_continue.strip().lower() == "auto"):
+        try:
+            training_continue = _as_bool("training_continue", training_continue)
+        except RenderError:
+            raise RenderError(f"training_continue must be auto, true or false, got '{training_continue}'") from None
+    else:
+        training_continue = "auto"
     # ... and its later separators at the learned rates (where positive)
     handoff_all_deep = _as_bool("handoff_all_deep", params.pop("handoff_all_deep", HANDOFF_ALL_DEEP))
     # learn_trace: the training passes also record each sample's value with the
@@ -555,6 +582,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     guide = None
     spp_train = 0
     iterations = 0
+    training_cancelled = 0   # (training iterations cancelled at the budget: their samples lost)
+    training_continued = training_continued_spp = 0   # (the last iteration's passes after it, TRAINING_CONTINUE)
     samples_last = 0
     build_seconds = 0.0
     leaves = 0
@@ -584,16 +613,20 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         return pg_state["buf"]
 
     def build(buf, photons: bool = True):
+        """A guide from one buffer of sub-path samples, or a list of them (one
+        training iteration's passes), with the photon guide's samples."""
         state = _core.GuidingState()
-        bufs = [buf]
-        pguide = photon_guide_buffer() if photons and len(buf) > 0 else None
+        bufs = list(buf) if isinstance(buf, (list, tuple)) else [buf]
+        count = sum(len(b) for b in bufs)
+        pguide = photon_guide_buffer() if photons and count > 0 else None
         pg_state["in_last"] = pguide is not None   # (the newest guide holds them)
         if pguide is not None:
             # (any positive scale leaves the image unbiased: the guide only
             # chooses seeds, and the estimator divides by the mixture it samples)
             # (sorted, in double: the buffer's order depends on which thread
             # ran which tile, and the scale must not, or the image would)
-            scale = _order_free_mean(buf.arrays()["weight"]) / pg_state["mean"]
+            scale = _order_free_mean(np.concatenate([b.arrays()["weight"] for b in bufs if len(b) > 0])) / \
+                pg_state["mean"]
             bufs.append(pguide.scaled(scale))
         state.build_from(bufs, bmin, bmax, c=c, epsilon=eps, threads=threads or 2, **structure_kw)
         return state
@@ -669,13 +702,67 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                 sys.stderr.write(f"mpg: {n_photons} photons -> {photon_samples} sub-path samples, "
                                  f"{leaves} leaves, {seconds_photons:.2f} s\n")
         k = 1
-        last_iter_t = None
+        last_iter_t = last_pass_t = None
         if auto:
             cam = scene.desc.camera
             costs = CostAccumulator((int(cam.crop[3]), int(cam.crop[2])))
         # (a training pass's guided_trace_map of zeros switches its trace records
         # off, Stats::record_trace; only passes that record costs make them)
         no_trace = None if learn_trace or costs is None else np.zeros(costs.chain_m2.shape, dtype=np.float32)
+
+        def training_pass(pass_guide, kp: int, pass_index: int):
+            """One training pass of kp spp with pass_guide (None: cancelled at the
+            budget, its samples lost); its cost records and step counts join the
+            training's. Training passes run at chain_rate_train under "auto", at
+            the render's rate otherwise (measured on sphere, 3 seeds x 30 s, when
+            one rate of 1/8 was the default: MSE 0.034 training at 1/8, 0.044 at 1)."""
+            nonlocal spp_train, training_cancelled, tsum, tsum2, tstats_n
+            integ = _core.make_integrator(core, "mpg", dict(params, record=True, guide=pass_guide, known_types=False,
+                                                            count_limits=auto_halvings,
+                                                            guide_fraction=train_alpha))
+            job = _core.RenderJob(core, integ, kp, seed, pass_index, threads or 0,
+                                  record_costs=auto, guided_trace_map=no_trace, light_trace=False,
+                                  record_branch=plain)
+            while not job.wait(0.05):
+                if budget_t is not None and _time.monotonic() - t0 > budget_t:
+                    job.cancel()
+            res = job.result()
+            if res["cancelled"]:
+                training_cancelled += 1
+                return None
+            spp_train += kp
+            if costs is not None:
+                costs.add(res, kp, params["chain_rate"])
+            if auto_halvings:
+                if costs is None:
+                    tsum = res["sum"] if tsum is None else tsum + res["sum"]
+                    tsum2 = res["sum_sq"] if tsum2 is None else tsum2 + res["sum_sq"]
+                for key, v in res["stats"].items():
+                    if key.startswith("limit_") or key in ("rays", "walk_steps"):
+                        tstats[key] = tstats.get(key, 0.0) + v
+                tstats_n += kp
+            return res
+
+        def halvings_step() -> None:
+            """The step limit chosen from the training so far (auto_halvings)."""
+            nonlocal halvings_info, tstats, tstats_n
+            if not auto_halvings:
+                return
+            decided = decide_halvings(tstats, tstats_n, tsum, tsum2, spp_train)
+            if decided is not None:
+                h, halvings_info = decided
+                cur = params["step_halvings"]
+                if cur >= 0 and h < 0:
+                    # counted under limit cur: no larger limit (nor none) can be judged
+                    h = cur
+                    halvings_info.update(step_halvings=cur)
+                halvings_history.append(h)
+                if limit_in_training and h != cur:
+                    # the next iterations walk under h; count afresh from them
+                    params["step_halvings"] = h
+                    tstats, tstats_n = {}, 0
+
+        iter_guide = None
         while True:
             used_t = _time.monotonic() - t0
             if budget_spp is not None and (spp_train + k > budget_spp or spp_train >= budget_spp / 2):
@@ -684,51 +771,24 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                 break
             # nor one that would overrun the budget at the last iteration's speed
             # (it would be cancelled and its samples lost: an iteration with the
-            # better guide finds more and longer chains, so it costs more than 2x)
-            if budget_t is not None and last_iter_t is not None and used_t + 2.0 * last_iter_t > budget_t:
-                break
+            # better guide finds more and longer chains, so it costs more than 2x):
+            # twice the last pass, plus the iteration's own work around its pass
+            # (the cost records' sums, the step limits' choice: per pixel, not per
+            # spp; doubled too, it had stopped the sphere's 1 s training after
+            # 1 spp in most fresh processes, leaving the render no maps)
+            if budget_t is not None and last_iter_t is not None:
+                ahead = 2.0 * last_pass_t + max(last_iter_t - last_pass_t, 0.0)
+                if used_t + ahead > budget_t:
+                    break
             iter_t0 = _time.monotonic()
-            # Training passes run at chain_rate_train under "auto", at the render's
-            # rate otherwise (measured on sphere, 3 seeds x 30 s, when one rate of
-            # 1/8 was the default: MSE 0.034 training at 1/8, 0.044 at 1).
-            integ = _core.make_integrator(core, "mpg", dict(params, record=True, guide=guide, known_types=False,
-                                                            count_limits=auto_halvings,
-                                                            guide_fraction=train_alpha))
-            job = _core.RenderJob(core, integ, k, seed, 1_000_000 + iterations, threads or 0,
-                                  record_costs=auto, guided_trace_map=no_trace, light_trace=False,
-                                  record_branch=plain)
-            while not job.wait(0.05):
-                if budget_t is not None and _time.monotonic() - t0 > budget_t:
-                    job.cancel()
-            r = job.result()
-            if r["cancelled"]:
+            r = training_pass(guide, k, 1_000_000 + iterations)
+            if r is None:
                 break
-            spp_train += k
             iterations += 1
-            if costs is not None:
-                costs.add(r, k, params["chain_rate"])
-            if auto_halvings:
-                if costs is None:
-                    tsum = r["sum"] if tsum is None else tsum + r["sum"]
-                    tsum2 = r["sum_sq"] if tsum2 is None else tsum2 + r["sum_sq"]
-                for key, v in r["stats"].items():
-                    if key.startswith("limit_") or key in ("rays", "walk_steps"):
-                        tstats[key] = tstats.get(key, 0.0) + v
-                tstats_n += k
-                decided = decide_halvings(tstats, tstats_n, tsum, tsum2, spp_train)
-                if decided is not None:
-                    h, halvings_info = decided
-                    cur = params["step_halvings"]
-                    if cur >= 0 and h < 0:
-                        # counted under limit cur: no larger limit (nor none) can be judged
-                        h = cur
-                        halvings_info.update(step_halvings=cur)
-                    halvings_history.append(h)
-                    if limit_in_training and h != cur:
-                        # the next iterations walk under h; count afresh from them
-                        params["step_halvings"] = h
-                        tstats, tstats_n = {}, 0
+            iter_guide = guide   # (the guide this iteration ran with: a continuation's)
+            halvings_step()
             last_iter_t = _time.monotonic() - iter_t0
+            last_pass_t = float(r["seconds"])
             train_seconds_per_spp = r["seconds"] / k
             buf = r["subpaths"]
             samples_last = len(buf)
@@ -745,6 +805,48 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                                  f"{leaves} leaves, {el:.1f} s{left}   ")
                 sys.stderr.flush()
             k *= 2
+        # MPG Sec. 5.8: "when a training iteration is finished, we start a new
+        # round if less than half of the training budget is used. Otherwise, we
+        # continue the current iteration until the rendering stage starts." So
+        # under a time budget the last iteration goes on, with the guide it ran
+        # with, in passes of at most its spp sized to the time left (less its
+        # own work around a pass and twice its guide's build, for the guide
+        # built again at the end from all its samples), until the training
+        # budget is spent: always with training_continue true; by default
+        # ("auto") only where the iterations end with fewer than 2 spp, which
+        # learn no map: the sphere's 1 s training ended after 1 spp (0.14 s of
+        # its 0.3 s) in most fresh processes (TRAINING_CONTINUE).
+        if _training_continues(training_continue, spp_train) and \
+                budget_t is not None and iterations > 0 and last_pass_t is not None and training_cancelled == 0:
+            k_last = k // 2
+            per_spp = max(last_pass_t / k_last, 1e-6)
+            around = max(last_iter_t - last_pass_t, 0.0)
+            reserve = 2.0 * (guide.build_seconds if guide is not None and samples_last > 0 else 0.0)
+            cont_bufs = [buf]
+            while True:
+                left = budget_t - (_time.monotonic() - t0) - around - reserve
+                kc = min(int(left / per_spp), k_last)
+                if budget_spp is not None:
+                    kc = min(kc, budget_spp - spp_train)
+                if kc < 1:
+                    break
+                r = training_pass(iter_guide, kc, 2_000_000 + training_continued)
+                if r is None:
+                    break
+                training_continued += 1
+                training_continued_spp += kc
+                cont_bufs.append(r["subpaths"])
+            if training_continued > 0:
+                halvings_step()
+                samples_last = sum(len(b) for b in cont_bufs)
+                if samples_last > 0:
+                    guide = build(cont_bufs)
+                    build_seconds += guide.build_seconds
+                    leaves = guide.num_leaves
+                if show:
+                    sys.stderr.write(f"\rmpg: training iteration {iterations} continued: {training_continued_spp} spp "
+                                     f"more ({spp_train} in all), {samples_last} sub-path samples, "
+                                     f"{leaves} leaves   ")
         if show:
             sys.stderr.write("\n")
     rate_info: dict[str, Any] = {}
@@ -862,7 +964,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         warnings.append(split_wait_warning)
     smap = None
     refiner = None
-    if psplit in ("mse", "relmse", "handoff") and costs is not None and costs.n >= 2:
+    # (a training of 1 spp: no map from it, but the refiner's costs, and the
+    # render's own samples learn the split; PixelSplitRefiner)
+    if psplit in ("mse", "relmse", "handoff") and costs is not None and costs.n >= 1:
         split_kw = dict(objective="mse" if psplit == "handoff" else psplit,
                         where=(rates() <= 0.0) if psplit == "handoff" else None,
                         branched=branch_where(), max_cost=psplit_cap)
@@ -937,6 +1041,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["spp_training"] = spp_train
     st["spp_rendering"] = img.spp
     st["training_iterations"] = iterations
+    st["training_cancelled"] = training_cancelled
+    st["training_continued_spp"] = training_continued_spp
     st["seconds_training"] = seconds_training
     st["seconds_guide_build"] = build_seconds
     st["subpath_samples"] = samples_last
