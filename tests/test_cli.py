@@ -134,6 +134,8 @@ def test_mpg_summary_and_chain_rate_map(tmp_path, scenes_dir):
     assert "mpg trained" in r.stderr and "chain rates per pixel" in r.stderr
     # (24 spp train 7: the hand-off waits for more, and the summary says so)
     assert "hand-off off: 7 training spp" in r.stderr
+    # (and the render's own refinements of the pixel split: at 4, 8 and 16 of its 17 spp)
+    assert "refined 3 times by the render's own samples" in r.stderr
     # a pixel split held under its cost cap says so
     rc = run([scene, "-D", "res=16", "--integrator", "mpg", "--spp", "24", "-P", "pixel_split_max_cost=1.03",
               "-o", str(tmp_path / "c.exr")])

@@ -185,12 +185,18 @@ def _run(args) -> int:
                           f"(mean {st.get('pixel_split_mean', 0.0):.1f} samples"
                           + (f", cost per sample capped at {st['pixel_split_cost']:.2f}x from "
                              f"{st['pixel_split_capped']:.2f}x" if "pixel_split_capped" in st else "")
-                          + ")")
+                          + ")"
+                          + (f", refined {st['pixel_split_online_updates']} times by the render's own samples "
+                             f"to {100 * st.get('pixel_split_online_fraction', 0.0):.1f} % "
+                             f"(mean {st.get('pixel_split_online_mean', 0.0):.1f})"
+                             if st.get("pixel_split_online_updates") else ""))
             if st.get("chain_unknown_type"):
                 rates += (f"; {st['chain_unknown_type']} chains of types their leaf never saw "
                           f"left to the path tracer")
+            cont = st.get("training_continued_spp", 0)
             print(f"mpg-render: mpg trained {st['training_iterations']} iterations "
-                  f"({st['spp_training']} spp, {st['seconds_training']:.1f} s), "
+                  f"({st['spp_training']} spp" + (f", {cont} of them continuing the last iteration" if cont else "")
+                  + f", {st['seconds_training']:.1f} s), "
                   f"{st['guide_leaves']} leaves; {rates}", file=sys.stderr)
         if st.get("lt_photons"):
             print(f"mpg-render: light traced the caustics the camera sees: {st['lt_photons']} photons, "
