@@ -1,0 +1,120 @@
+"""Equal-time renders as `mpg-render` runs them: one fresh process per render.
+
+`ab_params.py` and `mpg-bench compare` render many times in one process, so
+every render but the first runs warm (caches, allocator, thread start).
+A short render from the command line is always the first: on the sphere at
+1 s its first training iteration took 0.13-0.16 s against ~0.1 s warm, and
+that decided whether a second one fitted (docs/results.md, fortieth
+session). This script runs `mpg-render` once per render, the variants
+interleaved per seed (rotated as in ab_params.py), and prints per variant
+the MSE against the cached reference, the seeds' variance
+(mpg.metrics.seed_variance), the spp and, for `mpg`, the renders' training
+spp with the MSE of each group.
+
+    python bench/fresh_process.py sphere --time 1 --seeds 32 --variants '{}' '{"training_continue": false}'
+    python bench/fresh_process.py sphere --time 1 --seeds 32 --integrator path --variants '{}'
+
+Each variant is a JSON object of integrator parameters ('{}': the
+defaults), passed as -P NAME=VALUE. Needs the scene's reference in the
+cache (mpg-bench reference). Writes bench/results/fresh_process-<scene>-<hash>.json
+after every seed (or --out FILE)."""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import pathlib
+import shlex
+import subprocess
+import sys
+import tempfile
+
+import numpy as np
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def main() -> int:
+    import mpg
+    from mpg import metrics
+    from mpg.bench import reference as refmod
+    from pixel_errors import add_param_option, load_with_reference, scene_params   # bench/, the script's own folder
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("scene")
+    ap.add_argument("--integrator", default="mpg")
+    ap.add_argument("--time", type=float, default=1.0)
+    ap.add_argument("--seeds", type=int, default=16)
+    add_param_option(ap)
+    ap.add_argument("--variants", nargs="+", default=["{}"], metavar="JSON")
+    ap.add_argument("--out", help="results file (default bench/results/fresh_process-<scene>-<hash>.json)")
+    args = ap.parse_args()
+    if not args.time > 0:
+        ap.error("--time must be > 0")
+    if args.seeds < 2:
+        ap.error("--seeds must be >= 2 (a seeds' variance)")
+    try:
+        variants = [json.loads(v) for v in args.variants]
+    except json.JSONDecodeError as e:
+        ap.error(f"a variant is not JSON: {e}")
+    if not all(isinstance(v, dict) and "type" not in v for v in variants):
+        ap.error("each variant must be a JSON object of integrator parameters without 'type'")
+    params = scene_params(ap, args)
+    loaded = load_with_reference(args.scene, params, "fresh_process")
+    if loaded is None:
+        return 1
+    bs, _, info = loaded
+    ref = refmod.load_reference(info)[0].astype(float)
+    exe = pathlib.Path(sys.executable).parent / "mpg-render"
+    command = shlex.join(["python", "bench/fresh_process.py"] + sys.argv[1:])
+    key = hashlib.sha1(json.dumps([args.scene, params, args.integrator, args.time, args.seeds,
+                                   variants]).encode()).hexdigest()
+    out_path = (pathlib.Path(args.out) if args.out else
+                ROOT / "bench" / "results" / f"fresh_process-{pathlib.Path(args.scene).stem}-{key[:10]}.json")
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    runs: list[list[dict]] = [[] for _ in variants]
+    images: list[list[np.ndarray]] = [[] for _ in variants]
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in range(args.seeds):
+            n = len(variants)
+            for i in [(seed + j) % n for j in range(n)]:
+                exr, stats = pathlib.Path(tmp) / f"{i}.exr", pathlib.Path(tmp) / f"{i}.json"
+                cmd = [str(exe), str(bs.path), "--integrator", args.integrator, "--time", str(args.time),
+                       "--seed", str(seed), "-o", str(exr), "--no-preview", "-q", "--stats", str(stats)]
+                cmd += [a for d in bs.params.items() for a in ("-D", f"{d[0]}={d[1]}")]
+                cmd += [a for p in variants[i].items() for a in ("-P", f"{p[0]}={json.dumps(p[1]).strip(chr(34))}")]
+                r = subprocess.run(cmd, capture_output=True, text=True)
+                if r.returncode != 0:
+                    print(f"fresh_process: {shlex.join(cmd)} failed:\n{r.stderr}", file=sys.stderr)
+                    return 1
+                rgb = mpg.read_exr(str(exr))[0].astype(float)
+                st = json.loads(stats.read_text())
+                runs[i].append({"seed": seed, "spp": st["spp"], "spp_training": st.get("spp_training"),
+                                "training_continued_spp": st.get("training_continued_spp"),
+                                "mse": float(((rgb - ref) ** 2).mean())})
+                images[i].append(rgb)
+            out = {"command": command, "scene": args.scene, "integrator": args.integrator, "params": params,
+                   "time": args.time, "variants": []}
+            for v, rs, ims in zip(variants, runs, images):
+                groups: dict = {}
+                for r in rs:
+                    groups.setdefault(str(r["spp_training"]), []).append(r["mse"])
+                out["variants"].append({
+                    "variant": v, "runs": rs, "mse": float(np.mean([r["mse"] for r in rs])),
+                    "seed_variance": metrics.seed_variance(np.stack(ims)) if len(ims) > 1 else None,
+                    "spp": float(np.mean([r["spp"] for r in rs])),
+                    "mse_by_training_spp": {k: {"renders": len(g), "mse": float(np.mean(g))}
+                                            for k, g in sorted(groups.items())}})
+            out_path.write_text(json.dumps(out, indent=1))
+    for v in out["variants"]:
+        tr = "" if args.integrator != "mpg" else "; by training spp: " + ", ".join(
+            f"{k}: {g['renders']} renders, MSE {g['mse']:.4g}" for k, g in v["mse_by_training_spp"].items())
+        print(f"== {json.dumps(v['variant'])}: MSE {v['mse']:.4g} seed var. {v['seed_variance']:.4g} "
+              f"spp {v['spp']:.1f}{tr}")
+    print(f"wrote {out_path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
