@@ -4,9 +4,10 @@ Training (Sec. 5.8): iterations of 1, 2, 4, ... spp whose chain solutions are
 recorded as sub-path samples; after each iteration the guiding state (STree +
 per-leaf chain distributions) is rebuilt from that iteration's samples only.
 Training stops at `training_fraction` (30 %) of the budget, and a new iteration
-only starts while less than half of the training budget is spent. Training
-passes are never splatted into the image. The rest of the budget renders with
-the last guiding state (recording off)."""
+only starts while less than half of the training budget is spent; under a
+time budget the last one may continue until the budget is spent
+(`training_continue`). Training passes are never splatted into the image.
+The rest of the budget renders with the last guiding state (recording off)."""
 
 from __future__ import annotations
 
