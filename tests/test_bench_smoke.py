@@ -217,6 +217,32 @@ def test_costs_mpg_spp_cell(env):
     assert f"| {report.fmt(st['spp_training'])} + {report.fmt(st['spp_rendering'])} |" in text
 
 
+def test_fresh_process_script(env, tmp_path):
+    """bench/fresh_process.py: one mpg-render per render, two variants
+    interleaved over two seeds; per variant its runs, MSE, seeds' variance,
+    spp and MSE by training spp, all finite; a variant that is not a JSON
+    object is refused."""
+    import os
+    import pathlib
+    import subprocess
+    import sys
+    script = pathlib.Path(__file__).resolve().parents[1] / "bench" / "fresh_process.py"
+    dest = tmp_path / "fresh.json"
+    run_env = dict(os.environ, MPG_CACHE=env["cache"])
+    base = [sys.executable, str(script), env["scene"], "--param", "res=24", "--time", "0.3", "--seeds", "2"]
+    out = subprocess.run(base + ["--variants", "{}", '{"training_continue": true}', "--out", str(dest)],
+                         capture_output=True, text=True, timeout=120, env=run_env)
+    assert out.returncode == 0, out.stderr
+    d = json.loads(dest.read_text())
+    assert [v["variant"] for v in d["variants"]] == [{}, {"training_continue": True}]
+    for v in d["variants"]:
+        finite_numbers(v)
+        assert len(v["runs"]) == 2 and v["spp"] > 0 and v["seed_variance"] > 0
+        assert sum(g["renders"] for g in v["mse_by_training_spp"].values()) == 2
+    bad = subprocess.run(base + ["--variants", "[1]"], capture_output=True, text=True, timeout=60, env=run_env)
+    assert bad.returncode == 2 and "JSON object" in bad.stderr
+
+
 def test_missing_mitsuba_is_skipped(env, monkeypatch):
     monkeypatch.setattr(runners, "mitsuba_importable", lambda: False)
     out = env["dir"] / "nomi"
