@@ -40,7 +40,7 @@ def main() -> int:
     from mpg import metrics
     render_mod = importlib.import_module("mpg.render")   # (mpg.render is also the function)
     from mpg.bench import reference as refmod
-    from pixel_errors import add_param_option, load_with_reference, scene_params   # bench/, the script's own folder
+    from pixel_errors import add_param_option, load_with_reference, parse_variants, scene_params   # bench/
 
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
@@ -56,13 +56,7 @@ def main() -> int:
         ap.error("--time must be > 0")
     if args.seeds < 1:
         ap.error("--seeds must be >= 1")
-    try:
-        variants = [json.loads(v) for v in args.variants]
-    except json.JSONDecodeError as e:
-        ap.error(f"a variant is not JSON: {e}")
-    if not all(isinstance(v, dict) and "type" not in v for v in variants):
-        ap.error("each variant must be a JSON object of mpg parameters without 'type', "
-                 "e.g. '{\"chain_rate_min\": 0.0625}'")
+    variants = parse_variants(ap, args.variants, "mpg parameters")
     params = scene_params(ap, args)
     for v in variants:
         try:

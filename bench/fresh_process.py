@@ -39,7 +39,7 @@ def main() -> int:
     import mpg
     from mpg import metrics
     from mpg.bench import reference as refmod
-    from pixel_errors import add_param_option, load_with_reference, scene_params   # bench/, the script's own folder
+    from pixel_errors import add_param_option, load_with_reference, parse_variants, scene_params   # bench/
 
     ap = argparse.ArgumentParser()
     ap.add_argument("scene")
@@ -54,12 +54,7 @@ def main() -> int:
         ap.error("--time must be > 0")
     if args.seeds < 2:
         ap.error("--seeds must be >= 2 (a seeds' variance)")
-    try:
-        variants = [json.loads(v) for v in args.variants]
-    except json.JSONDecodeError as e:
-        ap.error(f"a variant is not JSON: {e}")
-    if not all(isinstance(v, dict) and "type" not in v for v in variants):
-        ap.error("each variant must be a JSON object of integrator parameters without 'type'")
+    variants = parse_variants(ap, args.variants, "integrator parameters")
     params = scene_params(ap, args)
     loaded = load_with_reference(args.scene, params, "fresh_process")
     if loaded is None:

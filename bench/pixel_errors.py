@@ -72,6 +72,19 @@ def add_param_option(ap: argparse.ArgumentParser) -> None:
                     help="scene parameter, e.g. res=128 (repeatable)")
 
 
+def parse_variants(ap: argparse.ArgumentParser, texts: list[str], what: str) -> list[dict]:
+    """The bench scripts' --variants: each a JSON object of `what`
+    (parameters) without 'type'; anything else is the parser's error."""
+    try:
+        variants = [json.loads(v) for v in texts]
+    except json.JSONDecodeError as e:
+        ap.error(f"a variant is not JSON: {e}")
+    if not all(isinstance(v, dict) and "type" not in v for v in variants):
+        ap.error(f"each variant must be a JSON object of {what} without 'type', "
+                 "e.g. '{\"chain_rate_min\": 0.0625}'")
+    return variants
+
+
 def scene_params(ap: argparse.ArgumentParser, args) -> dict[str, str]:
     """--param as a dict; a malformed one is the parser's error."""
     if any("=" not in p for p in args.param):
