@@ -26,6 +26,7 @@ import hashlib
 import json
 import pathlib
 import shlex
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -61,7 +62,13 @@ def main() -> int:
         return 1
     bs, _, info = loaded
     ref = refmod.load_reference(info)[0].astype(float)
-    exe = pathlib.Path(sys.executable).parent / "mpg-render"
+    exe = pathlib.Path(sys.executable).parent / "mpg-render"   # (this Python's, else the PATH's)
+    if not exe.is_file():
+        found = shutil.which("mpg-render")
+        if found is None:
+            print("fresh_process: no mpg-render beside this Python nor on the PATH", file=sys.stderr)
+            return 1
+        exe = pathlib.Path(found)
     command = shlex.join(["python", "bench/fresh_process.py"] + sys.argv[1:])
     key = hashlib.sha1(json.dumps([args.scene, params, args.integrator, args.time, args.seeds,
                                    variants]).encode()).hexdigest()
@@ -100,7 +107,8 @@ def main() -> int:
                     "seed_variance": metrics.seed_variance(np.stack(ims)) if len(ims) > 1 else None,
                     "spp": float(np.mean([r["spp"] for r in rs])),
                     "mse_by_training_spp": {k: {"renders": len(g), "mse": float(np.mean(g))}
-                                            for k, g in sorted(groups.items())}})
+                                            for k, g in sorted(groups.items(), key=lambda kv: float(kv[0])
+                                                               if kv[0] != "None" else -1.0)}})
             out_path.write_text(json.dumps(out, indent=1))
     for v in out["variants"]:
         tr = "" if args.integrator != "mpg" else "; by training spp: " + ", ".join(

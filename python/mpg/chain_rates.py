@@ -937,8 +937,9 @@ class PixelSplitRefiner:
     fixes. (Each update starts a new epoch of the pixels' Sobol sequences in
     the render, whose shifts the earlier samples never saw.)
 
-    A training of 1 spp (a short render's: the sphere at 1 s trains 1 or 3
-    spp, by a few ms of timing) has costs but no variance: its model's V is
+    A training of 1 spp (a short render's whose training could not go on:
+    the sphere at 1 s from a fresh process trained 1 spp, or 3 when a few ms
+    allowed, before the training's continuation) has costs but no variance: its model's V is
     0, `solve()` splits nothing, and the updates pool the render's own
     estimate alone (n_t = 0)."""
 

@@ -583,7 +583,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     guide = None
     spp_train = 0
     iterations = 0
-    training_cancelled = 0   # (training iterations cancelled at the budget: their samples lost)
+    training_cancelled = 0   # (training passes cancelled at the budget: their samples lost)
     training_continued = training_continued_spp = 0   # (the last iteration's passes after it, TRAINING_CONTINUE)
     samples_last = 0
     build_seconds = 0.0
@@ -712,8 +712,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         no_trace = None if learn_trace or costs is None else np.zeros(costs.chain_m2.shape, dtype=np.float32)
 
         def training_pass(pass_guide, kp: int, pass_index: int):
-            """One training pass of kp spp with pass_guide (None: cancelled at the
-            budget, its samples lost); its cost records and step counts join the
+            """One training pass of kp spp with pass_guide (None: the initial
+            distribution); its result, or None where it was cancelled at the
+            budget (its samples lost). Its cost records and step counts join the
             training's. Training passes run at chain_rate_train under "auto", at
             the render's rate otherwise (measured on sphere, 3 seeds x 30 s, when
             one rate of 1/8 was the default: MSE 0.034 training at 1/8, 0.044 at 1)."""
@@ -825,8 +826,12 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             reserve = 2.0 * (guide.build_seconds if guide is not None and samples_last > 0 else 0.0)
             cont_bufs = [buf]
             while True:
-                left = budget_t - (_time.monotonic() - t0) - around - reserve
-                kc = min(int(left / per_spp), k_last)
+                # (half of the time left, as the render sizes its passes, or the
+                # last whole spp that fits: a pass's speed varies, and one
+                # cancelled at the budget loses its samples; at the slowest
+                # speed seen so far)
+                time_left = budget_t - (_time.monotonic() - t0) - around - reserve
+                kc = min(k_last, max(int(0.5 * time_left / per_spp), 1 if time_left >= per_spp else 0))
                 if budget_spp is not None:
                     kc = min(kc, budget_spp - spp_train)
                 if kc < 1:
@@ -837,6 +842,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                 training_continued += 1
                 training_continued_spp += kc
                 cont_bufs.append(r["subpaths"])
+                per_spp = max(per_spp, float(r["seconds"]) / kc)
             if training_continued > 0:
                 halvings_step()
                 samples_last = sum(len(b) for b in cont_bufs)
@@ -848,6 +854,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                     sys.stderr.write(f"\rmpg: training iteration {iterations} continued: {training_continued_spp} spp "
                                      f"more ({spp_train} in all), {samples_last} sub-path samples, "
                                      f"{leaves} leaves   ")
+                    sys.stderr.flush()
         if show:
             sys.stderr.write("\n")
     rate_info: dict[str, Any] = {}
@@ -1031,7 +1038,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         st["integrator_params"][key] = "auto"   # (the learned rate: light_trace_learned)
     st.update(halvings_info)
     if auto_halvings:
-        st["step_halvings_history"] = halvings_history   # the choice after each training iteration
+        st["step_halvings_history"] = halvings_history   # the choice after each training iteration (and its continuation)
     st.update(handoff_all_info)
     st["chain_rate_mode"] = "per-pixel" if qmap is not None else "fixed"
     st["chain_handoff"] = handoff_note if qmap is not None else "off"
@@ -1044,6 +1051,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["training_iterations"] = iterations
     st["training_cancelled"] = training_cancelled
     st["training_continued_spp"] = training_continued_spp
+    st["training_continue"] = str(training_continue).lower()
     st["seconds_training"] = seconds_training
     st["seconds_guide_build"] = build_seconds
     st["subpath_samples"] = samples_last
