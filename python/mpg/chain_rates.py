@@ -938,10 +938,10 @@ class PixelSplitRefiner:
     the render, whose shifts the earlier samples never saw.)
 
     A training of 1 spp (a short render's whose training could not go on:
-    the sphere at 1 s from a fresh process trained 1 spp, or 3 when a few ms
-    allowed, before the training's continuation) has costs but no variance: its model's V is
-    0, `solve()` splits nothing, and the updates pool the render's own
-    estimate alone (n_t = 0)."""
+    the sphere at 1 s from a fresh process trained 1 spp, or 3 when a few
+    ms allowed, before the training's continuation) has costs but no
+    variance: its model's V is 0, `solve()` splits nothing, and the updates
+    pool the render's own estimate alone (n_t = 0)."""
 
     def __init__(self, acc: CostAccumulator, q: np.ndarray, kd: np.ndarray, radius: int = 1,
                  objective: str = "mse", k_max: int = PIXEL_SPLIT_MAX, iterations: int = 30,

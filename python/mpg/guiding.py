@@ -1038,7 +1038,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         st["integrator_params"][key] = "auto"   # (the learned rate: light_trace_learned)
     st.update(halvings_info)
     if auto_halvings:
-        st["step_halvings_history"] = halvings_history   # the choice after each training iteration (and its continuation)
+        # (the choice after each training iteration, and after its continuation)
+        st["step_halvings_history"] = halvings_history
     st.update(handoff_all_info)
     st["chain_rate_mode"] = "per-pixel" if qmap is not None else "fixed"
     st["chain_handoff"] = handoff_note if qmap is not None else "off"
