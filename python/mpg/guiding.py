@@ -355,6 +355,17 @@ def _training_continues(mode: bool | str, spp_train: int) -> bool:
     return mode is True or (mode == "auto" and spp_train < 2)
 
 
+def _training_continue_param(v, as_bool) -> bool | str:
+    """training_continue: "auto" or a boolean (as_bool: render's parser),
+    else a RenderError naming it."""
+    if isinstance(v, str) and v.strip().lower() == "auto":
+        return "auto"
+    try:
+        return as_bool("training_continue", v)
+    except RenderError:
+        raise RenderError(f"training_continue must be auto, true or false, got '{v}'") from None
+
+
 def _handoff_all_param(v) -> int | None:
     """handoff_all: "auto" (None) or a count of guided traces in 0..64, else
     a RenderError naming it."""
@@ -516,14 +527,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # handoff_all: every pixel handed off with this many guided traces in
     # place of the learned maps (design-notes "Every pixel handed off")
     handoff_all = _handoff_all_param(params.pop("handoff_all", HANDOFF_ALL))
-    training_continue = params.pop("training_continue", TRAINING_CONTINUE)
-    if not (isinstance(training_continue, str) and training_continue.strip().lower() == "auto"):
-        try:
-            training_continue = _as_bool("training_continue", training_continue)
-        except RenderError:
-            raise RenderError(f"training_continue must be auto, true or false, got '{training_continue}'") from None
-    else:
-        training_continue = "auto"
+    training_continue = _training_continue_param(params.pop("training_continue", TRAINING_CONTINUE), _as_bool)
     # ... and its later separators at the learned rates (where positive)
     handoff_all_deep = _as_bool("handoff_all_deep", params.pop("handoff_all_deep", HANDOFF_ALL_DEEP))
     # learn_trace: the training passes also record each sample's value with the
@@ -819,7 +823,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         # learn no map: the sphere's 1 s training ended after 1 spp (0.14 s of
         # its 0.3 s) in most fresh processes (TRAINING_CONTINUE).
         if _training_continues(training_continue, spp_train) and \
-                budget_t is not None and iterations > 0 and last_pass_t is not None and training_cancelled == 0:
+                budget_t is not None and iterations > 0 and training_cancelled == 0:
             k_last = k // 2
             per_spp = max(last_pass_t / k_last, 1e-6)
             around = max(last_iter_t - last_pass_t, 0.0)
