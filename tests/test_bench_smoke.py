@@ -239,8 +239,41 @@ def test_fresh_process_script(env, tmp_path):
         finite_numbers(v)
         assert len(v["runs"]) == 2 and v["spp"] > 0 and v["seed_variance"] > 0
         assert sum(g["renders"] for g in v["mse_by_training_spp"].values()) == 2
+    assert all(v["code"] == "tree" and v["seconds_between_passes"] >= 0.0 for v in d["variants"])
     bad = subprocess.run(base + ["--variants", "[1]"], capture_output=True, text=True, timeout=60, env=run_env)
     assert bad.returncode == 2 and "JSON object" in bad.stderr
+
+
+def test_fresh_process_baseline(env, tmp_path):
+    """fresh_process.py --baseline REV: each variant also with REV's
+    python/mpg (here HEAD's), interleaved, labelled by its code; a REV whose
+    cpp/ differs from the tree's is refused. Skipped outside a git checkout
+    or where the tree's cpp/ differs from HEAD's (a core being edited)."""
+    import os
+    import pathlib
+    import subprocess
+    import sys
+    root = pathlib.Path(__file__).resolve().parents[1]
+    if shutil.which("git") is None or subprocess.run(
+            ["git", "-C", str(root), "diff", "--quiet", "HEAD", "--", "cpp", "CMakeLists.txt"]).returncode != 0:
+        pytest.skip("not a git checkout, or its cpp/ differs from HEAD's")
+    dest = tmp_path / "fresh.json"
+    run_env = dict(os.environ, MPG_CACHE=env["cache"])
+    base = [sys.executable, str(root / "bench" / "fresh_process.py"), env["scene"], "--param", "res=24",
+            "--time", "0.3", "--seeds", "2"]
+    out = subprocess.run(base + ["--baseline", "HEAD", "--out", str(dest)],
+                         capture_output=True, text=True, timeout=120, env=run_env)
+    assert out.returncode == 0, out.stderr
+    d = json.loads(dest.read_text())
+    assert [(v["variant"], v["code"]) for v in d["variants"]] == [({}, "tree"), ({}, "HEAD")]
+    for v in d["variants"]:
+        assert len(v["runs"]) == 2 and v["spp"] > 0 and v["seed_variance"] > 0
+    assert "[HEAD]" in out.stdout and "[tree]" in out.stdout
+    # (the first commit with a core: its cpp/ differs from today's)
+    first = subprocess.run(["git", "-C", str(root), "rev-list", "--max-parents=0", "HEAD"],
+                           capture_output=True, text=True).stdout.split()[0]
+    bad = subprocess.run(base + ["--baseline", first], capture_output=True, text=True, timeout=60, env=run_env)
+    assert bad.returncode == 1 and "differs from the working tree" in bad.stderr
 
 
 def test_missing_mitsuba_is_skipped(env, monkeypatch):

@@ -594,6 +594,9 @@ def test_time_budget_training_continues_its_last_iteration(scenes_dir):
     assert st["training_continued_spp"] > 0 and st["training_cancelled"] == 0
     assert st["spp_training"] == 2 ** st["training_iterations"] - 1 + st["training_continued_spp"]
     assert st["seconds_training"] > 0.45   # (0.3-0.35 s without the continuation)
+    # the core's passes (training and render) and the loop's time between them
+    assert 0.0 < st["seconds_passes"] <= st["seconds"]
+    assert st["seconds_between_passes"] == pytest.approx(st["seconds"] - st["seconds_passes"])
     ref = mpg.render(sc, integrator="path", spp=16384, seed=11, progress=False)
     assert image_zmax(img, ref, [np.s_[:, :]] + [np.s_[i:i + 12, j:j + 12] for i in (0, 12) for j in (0, 12)]) < 5
     assert mpg.render(sc, {"type": "mpg", "training_continue": "true"}, spp=64, seed=21,

@@ -254,6 +254,9 @@ def test_time_budget_stops_and_keeps_passes():
     assert np.isfinite(img.rgb).all()
     # the work of a pass the limit cut is reported (and can only be part of the budget)
     assert 0.0 <= img.stats["seconds_dropped"] <= img.stats["seconds"]
+    # the passes' own wall time, the dropped one's too; the loop's is the rest
+    assert img.stats["seconds_dropped"] <= img.stats["seconds_passes"] <= img.stats["seconds"]
+    assert img.stats["seconds_passes"] > 0.5
 
 
 def test_time_limited_pass_sizes():

@@ -339,6 +339,7 @@ def _learn_photon_rate(core, scene, params: dict, keys: list[str], guide, seed: 
                                    lt_cost, DEFAULT_PHOTON_RATE)
     params[key] = rate
     info["seconds_photon_pilot"] = _time.monotonic() - t
+    info["seconds_photon_pilot_pass"] = float(r["seconds"])
     info["photon_pilot"] = int(r["lt_photons"])
     return info
 
@@ -688,6 +689,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         work = (counts.get("rays", 0.0) + STEP_COST * counts.get("walk_steps", 0.0)) / n
         return choose_step_halvings(counts, n, variance, work, 1.0 / float(params["chain_rate"]), 1.0, 1.0)
 
+    train_pass_seconds = 0.0   # the training passes' own wall time (cancelled ones too)
     train_seconds_per_spp = None   # the last training pass's (the render's first pass is sized by it)
     if probe.chains_active and frac > 0.0:
         budget_spp = None if spp is None else max(0, int(frac * spp))
@@ -722,7 +724,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             training's. Training passes run at chain_rate_train under "auto", at
             the render's rate otherwise (measured on sphere, 3 seeds x 30 s, when
             one rate of 1/8 was the default: MSE 0.034 training at 1/8, 0.044 at 1)."""
-            nonlocal spp_train, training_cancelled, tsum, tsum2, tstats_n
+            nonlocal spp_train, training_cancelled, tsum, tsum2, tstats_n, train_pass_seconds
             integ = _core.make_integrator(core, "mpg", dict(params, record=True, guide=pass_guide, known_types=False,
                                                             count_limits=auto_halvings,
                                                             guide_fraction=train_alpha))
@@ -733,6 +735,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                 if budget_t is not None and _time.monotonic() - t0 > budget_t:
                     job.cancel()
             res = job.result()
+            train_pass_seconds += float(res["seconds"])
             if res["cancelled"]:
                 training_cancelled += 1
                 return None
@@ -1083,6 +1086,12 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["stree_filter"] = structure_kw["filter"]
     st["guide_bytes"] = (samples_last + st["photon_guide_samples"]) * _core.SUBPATH_SAMPLE_BYTES
     st["seconds"] = _time.monotonic() - t0
+    # the core's passes (training, the photon pilot's, the render's) and the
+    # rest: the maps' learning, guide builds, photons and bookkeeping between
+    # them, while the cores wait (design-notes "Python ↔ C++ boundary")
+    st["seconds_passes"] = (st.get("seconds_passes", 0.0) + train_pass_seconds
+                            + photon_info.get("seconds_photon_pilot_pass", 0.0))
+    st["seconds_between_passes"] = max(st["seconds"] - st["seconds_passes"], 0.0)
     # chain_estimates counts every estimate started, chain_inactive those that
     # selective activation then stopped
     est = st.get("chain_estimates", 0)

@@ -421,6 +421,7 @@ def render(
     sched = pass_schedule(first=32 if hint else 1)
     pass_seconds_per_spp = None
     seconds_dropped = 0.0
+    seconds_passes = 0.0   # (the passes' own wall time, the dropped one's too)
     refine_at, refine_info = REFINE_FIRST, {}
     epoch, epoch_start = 0, 0   # (RenderJob's sequence_epoch and the spp when it began)
     if pixel_split_refine is not None:
@@ -496,6 +497,7 @@ def render(
                 interrupted = True
                 break
             r = job.result()
+            seconds_passes += float(r["seconds"])
             if r["cancelled"]:
                 time_limited = time_limited or cancelled_by_time
                 seconds_dropped = _time.monotonic() - pass_t0
@@ -575,6 +577,9 @@ def render(
         "interrupted": interrupted,
         "time_limited": time_limited,
         "seconds_dropped": seconds_dropped,  # wall time of a pass the limit cut (its work is dropped)
+        # the core's passes' wall time: the rest of `seconds` is the loop's own
+        # (mpg: its maps' learning, guide builds and photons, between the passes)
+        "seconds_passes": seconds_passes,
         "seconds_per_spp_hint": hint or 0.0,   # the estimate that sized the first pass (0: none)
         "rejected_samples": rejected,
         "samples_per_second": stats.get("samples", 0.0) / elapsed if elapsed > 0 else 0.0,
