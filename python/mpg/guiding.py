@@ -113,6 +113,15 @@ HANDOFF_DEEP = 1.0
 # 10 s and 0.93x at 20 s: the maps' thresholds were tuned on the shorter
 # trainings.
 TRAINING_CONTINUE = "auto"
+# A training of fewer than TRAINING_MIN_SPP spp learns no map (no variance):
+# where it continues (training_continue auto or true) its passes may run
+# past the training budget until it has that many spp, up to twice the
+# budget and at most TRAINING_MIN_SPP_FRACTION of the render's time. From
+# mpg-render at 1 s double_slabs' trainings of 1 spp rendered an MSE of
+# 0.30, those of 2 spp 0.15 (fresh processes, 32 seeds; docs/results.md,
+# forty-first session).
+TRAINING_MIN_SPP = 2
+TRAINING_MIN_SPP_FRACTION = 0.5
 # The hand-off (rate 0, chain_handoff) needs this many training spp unless it
 # is asked for: with fewer, the window's estimate of the path tracer's
 # variance has not seen its tail and the hand-off loses the caustic. Sphere,
@@ -717,10 +726,11 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         # off, Stats::record_trace; only passes that record costs make them)
         no_trace = None if learn_trace or costs is None else np.zeros(costs.chain_m2.shape, dtype=np.float32)
 
-        def training_pass(pass_guide, kp: int, pass_index: int):
+        def training_pass(pass_guide, kp: int, pass_index: int, deadline: float | None = None):
             """One training pass of kp spp with pass_guide (None: the initial
             distribution); its result, or None where it was cancelled at the
-            budget (its samples lost). Its cost records and step counts join the
+            budget (deadline: the seconds it may run to, default the training
+            budget; its samples lost). Its cost records and step counts join the
             training's. Training passes run at chain_rate_train under "auto", at
             the render's rate otherwise (measured on sphere, 3 seeds x 30 s, when
             one rate of 1/8 was the default: MSE 0.034 training at 1/8, 0.044 at 1)."""
@@ -731,8 +741,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             job = _core.RenderJob(core, integ, kp, seed, pass_index, threads or 0,
                                   record_costs=auto, guided_trace_map=no_trace, light_trace=False,
                                   record_branch=plain)
+            until = budget_t if deadline is None else deadline
             while not job.wait(0.05):
-                if budget_t is not None and _time.monotonic() - t0 > budget_t:
+                if until is not None and _time.monotonic() - t0 > until:
                     job.cancel()
             res = job.result()
             train_pass_seconds += float(res["seconds"])
@@ -824,7 +835,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         # budget is spent: always with training_continue true; by default
         # ("auto") only where the iterations end with fewer than 2 spp, which
         # learn no map: the sphere's 1 s training ended after 1 spp (0.14 s of
-        # its 0.3 s) in most fresh processes (TRAINING_CONTINUE).
+        # its 0.3 s) in most fresh processes (TRAINING_CONTINUE). A training
+        # still under TRAINING_MIN_SPP spp may run past its budget to reach
+        # them (at most twice the budget, TRAINING_MIN_SPP_FRACTION of the time).
         if _training_continues(training_continue, spp_train) and \
                 budget_t is not None and iterations > 0 and training_cancelled == 0:
             k_last = k // 2
@@ -837,13 +850,16 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                 # last whole spp that fits: a pass's speed varies, and one
                 # cancelled at the budget loses its samples; at the slowest
                 # speed seen so far)
-                time_left = budget_t - (_time.monotonic() - t0) - around - reserve
+                limit = budget_t
+                if spp_train < TRAINING_MIN_SPP:   # (no map yet: past the budget, TRAINING_MIN_SPP)
+                    limit = min(2.0 * budget_t, max(budget_t, TRAINING_MIN_SPP_FRACTION * time))
+                time_left = limit - (_time.monotonic() - t0) - around - reserve
                 kc = min(k_last, max(int(0.5 * time_left / per_spp), 1 if time_left >= per_spp else 0))
                 if budget_spp is not None:
                     kc = min(kc, budget_spp - spp_train)
                 if kc < 1:
                     break
-                r = training_pass(iter_guide, kc, 2_000_000 + training_continued)
+                r = training_pass(iter_guide, kc, 2_000_000 + training_continued, deadline=limit)
                 if r is None:
                     break
                 training_continued += 1
