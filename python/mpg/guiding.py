@@ -365,6 +365,16 @@ def _training_continues(mode: bool | str, spp_train: int) -> bool:
     return mode is True or (mode == "auto" and spp_train < 2)
 
 
+def _continuation_deadline(budget_t: float, time: float, spp_train: int) -> float:
+    """The seconds (from the render's start) a training continuation's pass
+    may run to: the training budget, or, while the training has fewer than
+    TRAINING_MIN_SPP spp (no map), up to twice it and at most
+    TRAINING_MIN_SPP_FRACTION of the render's time."""
+    if spp_train >= TRAINING_MIN_SPP:
+        return budget_t
+    return min(2.0 * budget_t, max(budget_t, TRAINING_MIN_SPP_FRACTION * time))
+
+
 def _training_continue_param(v, as_bool) -> bool | str:
     """training_continue: "auto" or a boolean (as_bool: render's parser),
     else a RenderError naming it."""
@@ -850,9 +860,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                 # last whole spp that fits: a pass's speed varies, and one
                 # cancelled at the budget loses its samples; at the slowest
                 # speed seen so far)
-                limit = budget_t
-                if spp_train < TRAINING_MIN_SPP:   # (no map yet: past the budget, TRAINING_MIN_SPP)
-                    limit = min(2.0 * budget_t, max(budget_t, TRAINING_MIN_SPP_FRACTION * time))
+                limit = _continuation_deadline(budget_t, time, spp_train)
                 time_left = limit - (_time.monotonic() - t0) - around - reserve
                 kc = min(k_last, max(int(0.5 * time_left / per_spp), 1 if time_left >= per_spp else 0))
                 if budget_spp is not None:
