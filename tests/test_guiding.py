@@ -579,9 +579,9 @@ def test_mpg_is_unbiased_against_path_tracing(scene, params, scenes_dir):
 def test_a_training_without_a_map_may_continue_past_its_budget():
     """A training of fewer than TRAINING_MIN_SPP spp learns no map: its
     continuation may run past the training budget, to twice it and at most
-    TRAINING_MIN_SPP_FRACTION of the time; one with a map stops at the budget."""
-    from mpg.guiding import TRAINING_MIN_SPP, TRAINING_MIN_SPP_FRACTION, _continuation_deadline
-    assert TRAINING_MIN_SPP == 2 and TRAINING_MIN_SPP_FRACTION == 0.5
+    TRAINING_MAX_FRACTION of the time; one with a map stops at the budget."""
+    from mpg.guiding import TRAINING_MIN_SPP, TRAINING_MAX_FRACTION, _continuation_deadline
+    assert TRAINING_MIN_SPP == 2 and TRAINING_MAX_FRACTION == 0.5
     assert _continuation_deadline(0.3, 1.0, 1) == pytest.approx(0.5)    # half the time
     assert _continuation_deadline(0.1, 1.0, 1) == pytest.approx(0.2)    # twice the budget
     assert _continuation_deadline(0.6, 1.0, 1) == pytest.approx(0.6)    # never below the budget

@@ -116,12 +116,24 @@ TRAINING_CONTINUE = "auto"
 # A training of fewer than TRAINING_MIN_SPP spp learns no map (no variance):
 # where it continues (training_continue auto or true) its passes may run
 # past the training budget until it has that many spp, up to twice the
-# budget and at most TRAINING_MIN_SPP_FRACTION of the render's time. From
+# budget and at most TRAINING_MAX_FRACTION of the render's time. From
 # mpg-render at 1 s double_slabs' trainings of 1 spp rendered an MSE of
 # 0.30, those of 2 spp 0.15 (fresh processes, 32 seeds; docs/results.md,
 # forty-first session).
 TRAINING_MIN_SPP = 2
-TRAINING_MIN_SPP_FRACTION = 0.5
+TRAINING_MAX_FRACTION = 0.5
+# training_clock: what the training budget (training_fraction of a time
+# budget) counts. "passes" (the default): the training passes' own time;
+# the loop's work between them (the cost records' sums, the maps' choices,
+# guide builds, the photon guide's tracing: ~0.2 s in a fresh process,
+# whatever the budget) comes on top, the training's wall time at most
+# TRAINING_MAX_FRACTION of the render's (or its training_fraction, if
+# larger). At 1 s that work had taken half the 0.3 s training, which then
+# ran 1-3 spp. "wall": everything counts (until the forty-first session).
+# Fresh processes, 24 seeds, a training fraction of 0.45 against 0.3 (the
+# effect of the passes clock at 1 s): the sphere at 1 s 1.93x lower,
+# double_slabs 1.38x, level at 2 s (docs/results.md, forty-first session).
+TRAINING_CLOCK = "passes"
 # The hand-off (rate 0, chain_handoff) needs this many training spp unless it
 # is asked for: with fewer, the window's estimate of the path tracer's
 # variance has not seen its tail and the hand-off loses the caustic. Sphere,
@@ -366,13 +378,13 @@ def _training_continues(mode: bool | str, spp_train: int) -> bool:
 
 
 def _continuation_deadline(budget_t: float, time: float, spp_train: int) -> float:
-    """The seconds (from the render's start) a training continuation's pass
-    may run to: the training budget, or, while the training has fewer than
-    TRAINING_MIN_SPP spp (no map), up to twice it and at most
-    TRAINING_MIN_SPP_FRACTION of the render's time."""
+    """The training time (on the training's clock, training_clock) a
+    continuation's pass may run to: the training budget, or, while the
+    training has fewer than TRAINING_MIN_SPP spp (no map), up to twice it
+    and at most TRAINING_MAX_FRACTION of the render's time."""
     if spp_train >= TRAINING_MIN_SPP:
         return budget_t
-    return min(2.0 * budget_t, max(budget_t, TRAINING_MIN_SPP_FRACTION * time))
+    return min(2.0 * budget_t, max(budget_t, TRAINING_MAX_FRACTION * time))
 
 
 def _training_continue_param(v, as_bool) -> bool | str:
@@ -548,6 +560,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # place of the learned maps (design-notes "Every pixel handed off")
     handoff_all = _handoff_all_param(params.pop("handoff_all", HANDOFF_ALL))
     training_continue = _training_continue_param(params.pop("training_continue", TRAINING_CONTINUE), _as_bool)
+    clock = str(params.pop("training_clock", TRAINING_CLOCK)).strip().lower()
+    if clock not in ("passes", "wall"):
+        raise RenderError(f"training_clock must be 'passes' or 'wall', got '{clock}'")
     # ... and its later separators at the learned rates (where positive)
     handoff_all_deep = _as_bool("handoff_all_deep", params.pop("handoff_all_deep", HANDOFF_ALL_DEEP))
     # learn_trace: the training passes also record each sample's value with the
@@ -713,6 +728,13 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     if probe.chains_active and frac > 0.0:
         budget_spp = None if spp is None else max(0, int(frac * spp))
         budget_t = None if time is None else frac * time
+        # the training's wall time never passes cap_t (the passes clock's
+        # work between passes on top of budget_t; inert for the wall clock)
+        cap_t = None if time is None else max(budget_t, TRAINING_MAX_FRACTION * time)
+
+        def used() -> float:
+            """The training budget's time used so far, on the training's clock."""
+            return train_pass_seconds if clock == "passes" else _time.monotonic() - t0
         if init == "photon":
             # Initial distribution from photons (supplemental Sec. 2) instead of
             # the surface-uniform seeds alone; flux as the weight (Eq. 4).
@@ -752,8 +774,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                                   record_costs=auto, guided_trace_map=no_trace, light_trace=False,
                                   record_branch=plain)
             until = budget_t if deadline is None else deadline
+            used0, pass_t0 = used(), _time.monotonic()   # (the clock before the pass; it runs on in it)
             while not job.wait(0.05):
-                if until is not None and _time.monotonic() - t0 > until:
+                now = _time.monotonic()
+                if until is not None and (used0 + now - pass_t0 > until or now - t0 > cap_t):
                     job.cancel()
             res = job.result()
             train_pass_seconds += float(res["seconds"])
@@ -794,7 +818,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
 
         iter_guide = None
         while True:
-            used_t = _time.monotonic() - t0
+            used_t = used()
             if budget_spp is not None and (spp_train + k > budget_spp or spp_train >= budget_spp / 2):
                 break
             if budget_t is not None and used_t >= budget_t / 2:
@@ -806,9 +830,12 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             # (the cost records' sums, the step limits' choice: per pixel, not per
             # spp; doubled too, it had stopped the sphere's 1 s training after
             # 1 spp in most fresh processes, leaving the render no maps)
+            # (the passes clock: the pass against the budget, and with the work
+            # around it against the wall's cap)
             if budget_t is not None and last_iter_t is not None:
-                ahead = 2.0 * last_pass_t + max(last_iter_t - last_pass_t, 0.0)
-                if used_t + ahead > budget_t:
+                around = max(last_iter_t - last_pass_t, 0.0)
+                if used_t + 2.0 * last_pass_t + (0.0 if clock == "passes" else around) > budget_t or \
+                        _time.monotonic() - t0 + 2.0 * last_pass_t + around > cap_t:
                     break
             iter_t0 = _time.monotonic()
             r = training_pass(guide, k, 1_000_000 + iterations)
@@ -828,7 +855,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                 leaves = guide.num_leaves
             if show:
                 el = _time.monotonic() - t0
-                left = (f", {max(0.0, budget_t - el):.1f} s of training left" if budget_t is not None
+                left = (f", {max(0.0, budget_t - used()):.1f} s of training left" if budget_t is not None
                         else f", {max(0, budget_spp - spp_train)} spp of training left")
                 sys.stderr.write(f"\rmpg: training iteration {iterations}: {k} spp "
                                  f"({spp_train} in all), {samples_last} sub-path samples, "
@@ -847,7 +874,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         # learn no map: the sphere's 1 s training ended after 1 spp (0.14 s of
         # its 0.3 s) in most fresh processes (TRAINING_CONTINUE). A training
         # still under TRAINING_MIN_SPP spp may run past its budget to reach
-        # them (at most twice the budget, TRAINING_MIN_SPP_FRACTION of the time).
+        # them (at most twice the budget, TRAINING_MAX_FRACTION of the time).
         if _training_continues(training_continue, spp_train) and \
                 budget_t is not None and iterations > 0 and training_cancelled == 0:
             k_last = k // 2
@@ -861,7 +888,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                 # cancelled at the budget loses its samples; at the slowest
                 # speed seen so far)
                 limit = _continuation_deadline(budget_t, time, spp_train)
-                time_left = limit - (_time.monotonic() - t0) - around - reserve
+                wall_left = cap_t - (_time.monotonic() - t0) - around - reserve
+                time_left = min(limit - used() - (0.0 if clock == "passes" else around + reserve), wall_left)
                 kc = min(k_last, max(int(0.5 * time_left / per_spp), 1 if time_left >= per_spp else 0))
                 if budget_spp is not None:
                     kc = min(kc, budget_spp - spp_train)
@@ -1084,6 +1112,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["training_cancelled"] = training_cancelled
     st["training_continued_spp"] = training_continued_spp
     st["training_continue"] = str(training_continue).lower()
+    st["training_clock"] = clock
     st["seconds_training"] = seconds_training
     st["seconds_guide_build"] = build_seconds
     st["subpath_samples"] = samples_last

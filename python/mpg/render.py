@@ -37,7 +37,7 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "delta_split", "pixel_split", "pixel_split_max_cost", "pixel_split_online", "limit_in_training", "known_types",
                 "handoff_guided", "handoff_deep", "learn_trace", "trace_tails", "joint_maps",
                 "trace_min_hits", "joint_min_samples", "delta_plain", "handoff_all", "handoff_all_deep",
-                "trace_defensive", "trace_defensive_kappa", "training_continue"}
+                "trace_defensive", "trace_defensive_kappa", "training_continue", "training_clock"}
 BOOL_PARAMS = {"hide_emitters", "delta_split_sobol", "light_trace_through", "light_trace_area", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "mis_rate", "chain_handoff", "limit_in_training", "known_types",
                "learn_trace", "trace_tails", "joint_maps", "delta_plain", "pixel_split_online", "handoff_all_deep"}
