@@ -589,6 +589,27 @@ def test_a_training_without_a_map_may_continue_past_its_budget():
     assert _continuation_deadline(0.3, 1.0, 7) == pytest.approx(0.3)
 
 
+def test_training_clock_counts_the_training_passes_or_the_wall(scenes_dir):
+    """training_clock "passes": the training fraction counts the training
+    passes' own time, the loop's work between them on top, the training's
+    wall time at most TRAINING_MAX_FRACTION of the render's; "wall" (the
+    default) counts everything. A 24x24 sphere at 1 s: under "passes" the
+    training passes take at most the training budget (0.3 s; a cancelled
+    pass is not counted as kept) and the training's wall time stays under
+    the cap; a bad value is an error naming it."""
+    from mpg.guiding import TRAINING_CLOCK, TRAINING_MAX_FRACTION
+    assert TRAINING_CLOCK == "wall"
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
+    img = mpg.render(sc, {"type": "mpg", "training_clock": "passes"}, time=1.0, seed=3, progress=False)
+    st = img.stats
+    assert st["training_clock"] == "passes" and st["spp_training"] >= 3
+    assert st["seconds_training"] <= TRAINING_MAX_FRACTION * 1.0 + 0.1
+    st_wall = mpg.render(sc, "mpg", time=1.0, seed=3, progress=False).stats
+    assert st_wall["training_clock"] == "wall" and st_wall["seconds_training"] <= 0.3 + 0.1
+    with pytest.raises(mpg.RenderError, match="training_clock must be"):
+        mpg.render(sc, {"type": "mpg", "training_clock": "cpu"}, time=0.5, progress=False)
+
+
 def test_time_budget_training_continues_its_last_iteration(scenes_dir):
     """MPG Sec. 5.8 (training_continue true): once a finished iteration
     leaves more than half the training budget spent, the current iteration

@@ -123,17 +123,19 @@ TRAINING_CONTINUE = "auto"
 TRAINING_MIN_SPP = 2
 TRAINING_MAX_FRACTION = 0.5
 # training_clock: what the training budget (training_fraction of a time
-# budget) counts. "passes" (the default): the training passes' own time;
-# the loop's work between them (the cost records' sums, the maps' choices,
-# guide builds, the photon guide's tracing: ~0.2 s in a fresh process,
-# whatever the budget) comes on top, the training's wall time at most
-# TRAINING_MAX_FRACTION of the render's (or its training_fraction, if
-# larger). At 1 s that work had taken half the 0.3 s training, which then
-# ran 1-3 spp. "wall": everything counts (until the forty-first session).
-# Fresh processes, 24 seeds, a training fraction of 0.45 against 0.3 (the
-# effect of the passes clock at 1 s): the sphere at 1 s 1.93x lower,
-# double_slabs 1.38x, level at 2 s (docs/results.md, forty-first session).
-TRAINING_CLOCK = "passes"
+# budget) counts. "wall" (the default): everything since the render began.
+# "passes": the training passes' own time; the loop's work between them
+# (the cost records' sums, the maps' choices, guide builds, the photon
+# guide's tracing: ~0.2 s in a fresh process, whatever the budget) comes
+# on top, the training's wall time at most TRAINING_MAX_FRACTION of the
+# render's (or its training_fraction, if larger). At 1 s that work takes
+# half of a 0.3 s training. Passes against wall (docs/results.md,
+# forty-first session): at 1 s (fresh processes, 24 seeds) double_slabs
+# 1.31x and the sphere 1.29x lower, the pool level, chain_length_4 1.22x
+# higher; at 3 s (8 seeds) the ring 1.59x higher and double_slabs, the
+# sphere and chain_length_4 1.1x; at 5 s the sphere 1.16x lower and
+# double_slabs 1.12x higher. Not the default.
+TRAINING_CLOCK = "wall"
 # The hand-off (rate 0, chain_handoff) needs this many training spp unless it
 # is asked for: with fewer, the window's estimate of the path tracer's
 # variance has not seen its tail and the hand-off loses the caustic. Sphere,
