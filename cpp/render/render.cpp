@@ -194,7 +194,10 @@ void RenderJob::run() {
             // traces, and the path tracer's weights against them, cost about
             // as much as the sample: in every sample they took a training
             // iteration's worth of time); which one moves along the pixels
-            st.record_trace = costs && (pixel + uint64_t(k)) % uint64_t(Stats::kTraceRecordEvery) == 0;
+            // and, as the branch records' below, with the pass (a training's
+            // 1-spp passes, its first iteration's and a continuation's, had
+            // all recorded at the same pixels)
+            st.record_trace = costs && (pixel + uint64_t(k) + cfg_.pass) % uint64_t(Stats::kTraceRecordEvery) == 0;
             // The pixel split: the sample is the mean of kpix camera samples
             // drawn one after the other from the sample's own random stream
             // (kpix = 1: the plain sample, bit for bit).
