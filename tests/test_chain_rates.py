@@ -365,11 +365,16 @@ def test_mpg_with_learned_rates_is_deterministic(scenes_dir):
     c = mpg.render(sc, integrator={"type": "mpg", "chain_handoff": False}, spp=24, seed=3, progress=False)
     assert np.all(c.chain_rate_map > 0) and c.stats["chain_rate_fraction_pt"] == 0.0
     assert c.stats["chain_handed"] == 0
-    # ... and so is handoff_all=auto's choice (the defaults)
-    d1 = mpg.render(sc, integrator="mpg", spp=128, seed=3, threads=1, progress=False)
-    d2 = mpg.render(sc, integrator="mpg", spp=128, seed=3, threads=2, progress=False)
+    # ... and so is handoff_all=auto's choice (the defaults). (Seed 0: on this
+    # 16x16 image the model of every pixel handed off is near 0 and, from
+    # the few trace records, below it for some seeds: 2 of seeds 0-7, seed 3
+    # among them since the records move with the pass, 4 and 6 before; then
+    # there is no ratio and auto keeps the learned maps.)
+    d1 = mpg.render(sc, integrator="mpg", spp=128, seed=0, threads=1, progress=False)
+    d2 = mpg.render(sc, integrator="mpg", spp=128, seed=0, threads=2, progress=False)
     assert d1.stats["handoff_all_mode"] == "auto" and "handoff_all_model_ratio" in d1.stats
     assert d1.stats["handoff_all_model_ratio"] == d2.stats["handoff_all_model_ratio"]
+    assert d1.stats["handoff_all"] == d2.stats["handoff_all"]
     assert np.array_equal(d1.rgb, d2.rgb)
 
 
