@@ -96,6 +96,26 @@ def test_the_photons_do_not_depend_on_the_thread_count(scenes_dir):
         integ.trace_photons(10, 5, threads=-1)
 
 
+def test_photon_ranges_appended_are_the_whole_trace(scenes_dir):
+    """trace_photons(count, seed, begin=, end=): photons [begin, end) of the
+    count-photon trace, weighted as in it (flux / count). The photon guide
+    grows over the training's builds from such ranges, so consecutive
+    ranges appended in order must be the whole trace's buffer, sample for
+    sample, whatever the threads; a range outside [0, count] is refused."""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
+    integ = _core.make_integrator(sc.core, "mpg", dict(record=True))
+    whole = integ.trace_photons(30_001, 9, threads=2).arrays()
+    cuts = [0, 7_500, 15_000, 15_000, 30_001]   # (one empty range)
+    parts = [integ.trace_photons(30_001, 9, threads=t, begin=a, end=b).arrays()
+             for t, (a, b) in zip((1, 2, 3, 2), zip(cuts[:-1], cuts[1:]))]
+    assert len(parts[2]["n"]) == 0 and len(parts[0]["n"]) > 100
+    for k in whole:
+        assert np.array_equal(whole[k], np.concatenate([q[k] for q in parts])), k
+    for a, b in ((5, 4), (0, 30_002)):
+        with pytest.raises(ValueError, match="begin <= end <= count"):
+            integ.trace_photons(30_001, 9, begin=a, end=b)
+
+
 def test_a_scaled_buffer_scales_the_weights_alone(scenes_dir):
     """SubpathBuffer.scaled (the photon guide's samples put on the training
     samples' scale): every weight times f, every other field as it was."""

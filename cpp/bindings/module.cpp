@@ -727,18 +727,28 @@ PYBIND11_MODULE(_core, m) {
         auto* p = dynamic_cast<const PathIntegrator*>(&i);
         return p ? p->light_trace_off() : std::string();
       })
-      .def("trace_photons", [](const Integrator& i, uint64_t count, uint64_t seed, int threads) {
+      .def("trace_photons", [](const Integrator& i, uint64_t count, uint64_t seed, int threads,
+                               py::object begin, py::object end) {
         // Photon initialisation of MPG (supplemental Sec. 2): sub-path samples
         // from photons (threads: 0 = all cores; the buffer does not depend on it).
+        // begin/end: only photons [begin, end) of the `count`, weighted as in
+        // the whole trace (consecutive ranges' buffers, appended, are its buffer).
         if (threads < 0) throw std::invalid_argument("threads must be >= 0");
+        const uint64_t b = begin.is_none() ? 0 : begin.cast<uint64_t>();
+        const uint64_t e = end.is_none() ? count : end.cast<uint64_t>();
+        if (b > e || e > count)
+          throw std::invalid_argument("trace_photons: need 0 <= begin <= end <= count, got begin " +
+                                      std::to_string(b) + ", end " + std::to_string(e) + ", count " +
+                                      std::to_string(count));
         auto buf = std::make_shared<SubpathBuffer>();
         auto* p = dynamic_cast<const PathIntegrator*>(&i);
-        if (p && p->chains()) {
+        if (p && p->chains() && e > b) {
           py::gil_scoped_release nogil;
-          p->chains()->trace_photons(count, seed, buf->v, threads);
+          p->chains()->trace_photons(count, seed, buf->v, threads, b, e);
         }
         return buf;
-      }, py::arg("count"), py::arg("seed") = 0, py::arg("threads") = 0);
+      }, py::arg("count"), py::arg("seed") = 0, py::arg("threads") = 0, py::arg("begin") = py::none(),
+         py::arg("end") = py::none());
   m.def("mis_pair", [](const Integrator& i, py::object o, py::object d, py::object omega_D, py::object seed_dir,
                        const std::string& tau) -> py::object {
     // The MIS densities (a, b) of one chain path on the estimator's and on the

@@ -1265,17 +1265,21 @@ Color ChainEstimator::glint(const GlintLights& gl, const Vec3& o, const Vec3& d,
 }
 
 uint64_t ChainEstimator::trace_photons(uint64_t count, uint64_t seed,
-                                       std::vector<SubpathSample>& out, int threads) const {
+                                       std::vector<SubpathSample>& out, int threads,
+                                       uint64_t begin, uint64_t end) const {
   if (!active_) return 0;
+  if (end == 0 || end > count) end = count;
+  if (begin >= end) return 0;
+  const uint64_t span = end - begin;
   // In parallel over blocks of photon indices, each block's samples in its own
   // vector, appended in index order: every photon has its own stream, so the
   // buffer is the same as one thread's, whatever the thread count.
   const uint64_t cores = std::max<uint64_t>(1, std::thread::hardware_concurrency());
   const uint64_t want = threads > 0 ? std::min<uint64_t>(uint64_t(threads), cores) : cores;
-  const uint64_t nthreads = std::max<uint64_t>(1, std::min<uint64_t>(want, count / 4096));
+  const uint64_t nthreads = std::max<uint64_t>(1, std::min<uint64_t>(want, span / 4096));
   std::vector<std::vector<SubpathSample>> parts(size_t(nthreads - 1));
   auto block = [&](uint64_t t) {
-    trace_photon_range(count * t / nthreads, count * (t + 1) / nthreads, count, seed,
+    trace_photon_range(begin + span * t / nthreads, begin + span * (t + 1) / nthreads, count, seed,
                        t == 0 ? out : parts[size_t(t - 1)]);
   };
   std::vector<std::thread> pool;
@@ -1283,7 +1287,7 @@ uint64_t ChainEstimator::trace_photons(uint64_t count, uint64_t seed,
   block(0);
   for (auto& th : pool) th.join();
   for (const auto& v : parts) out.insert(out.end(), v.begin(), v.end());
-  return count;
+  return span;
 }
 
 // Photons [begin, end) of trace_photons(count, seed, ...), appended to `out`.

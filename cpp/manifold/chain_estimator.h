@@ -258,8 +258,13 @@ class ChainEstimator {
   // in x_D -> x_L order) weighted by its flux (supplemental Eq. 4).
   // Deterministic for a given seed: traced on `threads` threads (0: all
   // cores), the same buffer whatever their count. Returns the number of
-  // photons traced.
-  uint64_t trace_photons(uint64_t count, uint64_t seed, std::vector<SubpathSample>& out, int threads = 0) const;
+  // photons traced. begin/end (end 0: count): only photons [begin, end) of
+  // those `count`, weighted as in the whole trace (flux / count), so the
+  // buffers of consecutive ranges appended in order are the whole trace's
+  // buffer, sample for sample (mpg.guiding's photon guide, grown over the
+  // training's guide builds).
+  uint64_t trace_photons(uint64_t count, uint64_t seed, std::vector<SubpathSample>& out, int threads = 0,
+                         uint64_t begin = 0, uint64_t end = 0) const;
   // (trace_photons' photons [begin, end), appended to out)
   void trace_photon_range(uint64_t begin, uint64_t end, uint64_t count, uint64_t seed,
                           std::vector<SubpathSample>& out) const;
