@@ -137,6 +137,11 @@ def test_the_photon_guide_joins_every_training_guide(scenes_dir):
     on = mpg.render(sc, "mpg", spp=24, seed=4, progress=False).stats
     off = mpg.render(sc, {"type": "mpg", "photon_guide": 0}, spp=24, seed=4, progress=False).stats
     assert on["photon_guide"] == 200_000 and on["photon_guide_samples"] > 1000
+    # (grown over the builds: 1/4, 1/2, then all of them from the third)
+    assert on["training_iterations"] >= 3 and on["photon_guide_traced"] == 200_000
+    short = mpg.render(sc, "mpg", spp=4, seed=4, progress=False).stats   # (1 training spp: one build)
+    assert short["training_iterations"] == 1 and short["photon_guide_traced"] == 50_000
+    assert 0 < short["photon_guide_samples"] < on["photon_guide_samples"] / 2
     assert off["photon_guide"] == 0 and off["photon_guide_samples"] == 0 and off["seconds_photon_guide"] == 0
     assert on["guide_leaves"] > off["guide_leaves"]
     assert on["seconds_photon_guide"] > 0
@@ -147,7 +152,9 @@ def test_the_photon_guide_joins_every_training_guide(scenes_dir):
     # init=photon: its first guide is its own photons' alone; the photon
     # guide's join the training's guides
     ini = mpg.render(sc, {"type": "mpg", "init": "photon", "photons": 5000}, spp=24, seed=4, progress=False).stats
-    assert ini["photon_samples"] > 0 and ini["photon_guide_samples"] == on["photon_guide_samples"]
+    # (its first guide holds no photon guide: two builds of it grew, to half)
+    assert ini["photon_samples"] > 0 and ini["photon_guide_traced"] == 100_000
+    assert 0 < ini["photon_guide_samples"] < on["photon_guide_samples"]
     # a scene without chains: the stats are there, and nothing was traced
     diffuse = mpg.load_file(scenes_dir / "eval" / "diffuse_room.xml", res="8")
     d = mpg.render(diffuse, "mpg", spp=2, seed=1, progress=False).stats

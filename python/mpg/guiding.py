@@ -219,6 +219,14 @@ PIXEL_SPLIT_ONLINE = True
 # session): the leaves then know the chain types the light sends, which the
 # estimator's own walks in training rarely find (a tiny light's)
 PHOTON_GUIDE = 200_000
+# The photon guide grows over the training's guide builds: the first holds
+# 1/PHOTON_GUIDE_FIRST of its photons, each later one twice the one before,
+# up to all of them (the third build on), the same photons (one trace's
+# ranges, weighted as the whole trace's). A 1 s training spent a sixth of
+# its budget on the 200 000 photons of its first build; on double_slabs
+# 100 000 let 16 of 24 trainings reach 3 spp against 5, MSE 1.45x lower
+# (docs/results.md, forty-first and forty-second sessions)
+PHOTON_GUIDE_FIRST = 4
 # Lobes anchored at a point along their sample's omega_D, at this multiple of
 # the distance to its light point, and aimed from the query's x_D
 # (lobe_anchor; design-notes "Anchored lobes"); 0: centred on omega_D, the
@@ -635,24 +643,37 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     except ValueError as e:
         raise RenderError(str(e)) from None
 
-    # photon_guide: photons traced once, when the first training iteration
-    # builds its guide (within the training's budget), whose sub-path samples
-    # join every guide the training builds (design-notes "Photons in every
-    # guide"), their weights scaled to the mean weight of that iteration's
-    # samples; not the photon initialisation's guide (init=photon: the
-    # initial photons alone)
-    pg_state: dict[str, Any] = {"buf": None, "traced": False, "mean": 0.0, "seconds": 0.0, "in_last": False}
+    # photon_guide: photons traced within the training's budget, whose
+    # sub-path samples join every guide the training builds (design-notes
+    # "Photons in every guide"), their weights scaled to the mean weight of
+    # that iteration's samples; not the photon initialisation's guide
+    # (init=photon: the initial photons alone). Grown over the builds
+    # (PHOTON_GUIDE_FIRST; design-notes "The photon guide grown over the
+    # builds"): build b holds photons [0, N min(1, 2^b / FIRST)) of one
+    # N-photon trace, each build tracing only the range it adds.
+    pg_state: dict[str, Any] = {"bufs": [], "traced": 0, "builds": 0, "mean": 0.0, "seconds": 0.0,
+                                "samples": 0, "in_last": 0}
 
-    def photon_guide_buffer():
-        if not pg_state["traced"] and n_photon_guide > 0:
-            pg_state["traced"] = True
+    def photon_guide_buffers() -> list:
+        """The photon guide's buffers for the next build (grown to its share)."""
+        if n_photon_guide <= 0:
+            return []
+        share = min(1.0, 2.0 ** pg_state["builds"] / PHOTON_GUIDE_FIRST)
+        want = n_photon_guide if share >= 1.0 else max(1, int(n_photon_guide * share))
+        pg_state["builds"] += 1
+        if want > pg_state["traced"]:
             tp = _time.monotonic()
             b = probe.trace_photons(n_photon_guide, (seed * 0x9E3779B97F4A7C15 + 0x5EED) % 2**64,
-                                    threads=threads or 0)
-            pg_state["seconds"] = _time.monotonic() - tp
+                                    threads=threads or 0, begin=pg_state["traced"], end=want)
+            pg_state["seconds"] += _time.monotonic() - tp
+            pg_state["traced"] = want
             if len(b) > 0:
-                pg_state["buf"], pg_state["mean"] = b, _order_free_mean(b.arrays()["weight"])
-        return pg_state["buf"]
+                pg_state["bufs"].append(b)
+                pg_state["samples"] += len(b)
+                # (the mean of every sample so far, whatever their order or ranges)
+                pg_state["mean"] = _order_free_mean(np.concatenate([x.arrays()["weight"]
+                                                                    for x in pg_state["bufs"]]))
+        return list(pg_state["bufs"])
 
     def build(buf, photons: bool = True):
         """A guide from one buffer of sub-path samples, or a list of them (one
@@ -660,16 +681,16 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
         state = _core.GuidingState()
         bufs = list(buf) if isinstance(buf, (list, tuple)) else [buf]
         count = sum(len(b) for b in bufs)
-        pguide = photon_guide_buffer() if photons and count > 0 else None
-        pg_state["in_last"] = pguide is not None   # (the newest guide holds them)
-        if pguide is not None:
+        pguide = photon_guide_buffers() if photons and count > 0 else []
+        pg_state["in_last"] = sum(len(b) for b in pguide)   # (the newest guide's photon samples)
+        if pguide:
             # (any positive scale leaves the image unbiased: the guide only
             # chooses seeds, and the estimator divides by the mixture it samples)
             # (sorted, in double: the buffer's order depends on which thread
             # ran which tile, and the scale must not, or the image would)
             scale = _order_free_mean(np.concatenate([b.arrays()["weight"] for b in bufs if len(b) > 0])) / \
                 pg_state["mean"]
-            bufs.append(pguide.scaled(scale))
+            bufs.extend(b.scaled(scale) for b in pguide)
         state.build_from(bufs, bmin, bmax, c=c, epsilon=eps, threads=threads or 2, **structure_kw)
         return state
 
@@ -1124,7 +1145,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     st["photon_samples"] = photon_samples
     st["photon_guide"] = n_photon_guide
     # (the photons' samples in the final guide: 0 where no training iteration built one)
-    st["photon_guide_samples"] = len(pg_state["buf"]) if pg_state["in_last"] else 0
+    st["photon_guide_samples"] = pg_state["in_last"]
+    st["photon_guide_traced"] = pg_state["traced"]   # (photons traced: the final guide's, as it grew)
     st["seconds_photon_guide"] = pg_state["seconds"]
     st["seconds_photons"] = seconds_photons
     st["guide_leaves"] = leaves
