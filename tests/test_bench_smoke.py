@@ -240,6 +240,8 @@ def test_fresh_process_script(env, tmp_path):
         assert len(v["runs"]) == 2 and v["spp"] > 0 and v["seed_variance"] > 0
         assert sum(g["renders"] for g in v["mse_by_training_spp"].values()) == 2
     assert all(v["code"] == "tree" and v["seconds_between_passes"] >= 0.0 for v in d["variants"])
+    assert "paired" not in d["variants"][0] and d["variants"][1]["paired"]["seeds"] == 2
+    assert "95 % interval" in out.stdout
     bad = subprocess.run(base + ["--variants", "[1]"], capture_output=True, text=True, timeout=60, env=run_env)
     assert bad.returncode == 2 and "JSON object" in bad.stderr
 
@@ -274,6 +276,32 @@ def test_fresh_process_baseline(env, tmp_path):
                            capture_output=True, text=True).stdout.split()[0]
     bad = subprocess.run(base + ["--baseline", first], capture_output=True, text=True, timeout=60, env=run_env)
     assert bad.returncode == 1 and "differs from the working tree" in bad.stderr
+
+
+def test_fresh_process_paired_ratio():
+    """fresh_process.paired_ratio: the ratio of the two means on the seeds
+    both rendered, an interval around it that holds it, a degenerate
+    interval where every seed's ratio is the same, and NaN (not an error)
+    with fewer than two common seeds."""
+    import pathlib
+    import sys
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "bench"))
+    try:
+        from fresh_process import paired_ratio
+    finally:
+        sys.path.pop(0)
+    rng = np.random.default_rng(3)
+    m = rng.lognormal(0.0, 1.0, 40)
+    first = [{"seed": i, "mse": float(2.0 * v)} for i, v in enumerate(m)]
+    other = [{"seed": i, "mse": float(v)} for i, v in enumerate(m)] + [{"seed": 99, "mse": 5.0}]
+    r = paired_ratio(first, other)
+    assert r["seeds"] == 40 and r["ratio"] == pytest.approx(2.0)
+    assert r["ci95"] == pytest.approx([2.0, 2.0])
+    noisy = [{"seed": i, "mse": float(v * rng.lognormal(0.0, 0.5))} for i, v in enumerate(m)]
+    r = paired_ratio(first, noisy)
+    assert r["ci95"][0] < r["ratio"] < r["ci95"][1]
+    assert paired_ratio(first, noisy) == r   # (a fixed generator)
+    assert np.isnan(paired_ratio(first[:1], other[:1])["ratio"])
 
 
 def test_missing_mitsuba_is_skipped(env, monkeypatch):
