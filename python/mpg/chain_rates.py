@@ -417,9 +417,19 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
             if tails:
                 mse_k = mse_k + (finite(getattr(acc, f"trace{k}_tail")) -
                                  finite(getattr(acc, f"trace{k}_seen"))) / n_t
-            dvt = _box_blur(wgt * np.maximum(mse_k, 0.0) - wgt * var_t + (1.0 / q_t - 1.0) * m2,
-                            radius, nonneg=False)
-            traced.append((k, dvt, _box_blur(k * ray1 + pt_w, radius), el))
+            dv_k = wgt * np.maximum(mse_k, 0.0) - wgt * var_t + (1.0 / q_t - 1.0) * m2
+            dc_k = k * ray1 + pt_w
+            traced.append((k, _box_blur(dv_k, radius, nonneg=False), _box_blur(dc_k, radius), el))
+            # the model of every pixel handed off with k traces: image means of
+            # the fields themselves, not of their window means (a mean over
+            # the image needs no window, and the windows clipped at the
+            # borders weigh a border pixel's value up to 3x: on a 16x16 image
+            # that turned the mean variance negative in 2 seeds of 8, leaving
+            # handoff_all=auto no model; on the 256x256 scenes the two agree
+            # to 4 digits, docs/results.md, forty-second session)
+            v_all = v1_mean + float(np.mean(np.where(has, dv_k, 0.0)))
+            c_all = float(np.mean(c0 + np.where(has, dc_k - mis, 0.0))) + c_offset
+            info[f"chain_rate_model_v_all{k}"], info[f"chain_rate_model_c_all{k}"] = v_all, c_all
     forms_dv = [dv_b] + [t[1] for t in traced]
     forms_dc = [-mis_b] + [t[2] - mis_b for t in traced]
     forms_ok = [eligible] + [t[3] for t in traced]
@@ -482,10 +492,6 @@ def learn_rates_traced(acc: CostAccumulator, q_min: float = 1.0 / 32, radius: in
             cands = [(q, pt), fixed_point(True), (q, zero_form(*means(q, pt))[0])]
             q, pt = min(cands, key=model_f)
     v_model, c_model = means(q, pt)
-    # every pixel at rate 0 with k traces (handoff_all=k's maps), as the model sees it
-    for f, t in enumerate(traced):
-        v_all, c_all = means(np.ones(shape), np.where(has, f + 2, 0).astype(np.int8))
-        info[f"chain_rate_model_v_all{t[0]}"], info[f"chain_rate_model_c_all{t[0]}"] = v_all, c_all
     # pixels without chain work keep 1: the rate is never used there
     q = np.where(has & np.isfinite(q), q, 1.0)
     q = np.where(pt > 0, 0.0, q)
