@@ -19,9 +19,10 @@ With --baseline REV every variant also runs with the Python package of git
 revision REV (`git archive` of python/mpg into a temporary folder, beside
 the built core; REV's cpp/ must equal the working tree's), interleaved with
 the working tree's: a change without a switch (a faster loop) measured in
-one run. Every variant after the first also gets the first's mean MSE over
-its own with a 95 % bootstrap interval over the paired seeds (above 1: it
-is the lower; results file: "paired"). Per render it also records `seconds_between_passes`, the render's
+one run. Every variant after the first also gets a paired mean-MSE ratio
+with a 95 % bootstrap interval over the seeds (above 1: it is the lower;
+results file: "paired", with "against"): a REV run against the same
+variant's tree run, a tree run against the first variant's. Per render it also records `seconds_between_passes`, the render's
 wall time outside the core's passes (mpg's maps, guides, bookkeeping).
 
 Each variant is a JSON object of integrator parameters ('{}': the
@@ -135,9 +136,14 @@ def main() -> int:
                     "mse_by_training_spp": {k: {"renders": len(g), "mse": float(np.mean(g))}
                                             for k, g in sorted(groups.items(), key=lambda kv: float(kv[0])
                                                                if kv[0] != "None" else -1.0)}})
-            first = out["variants"][0]
+            # (a REV run against the same variant's tree run; a tree run
+            # against the first variant's)
             for v in out["variants"][1:]:
-                v["paired"] = paired_ratio(first["runs"], v["runs"])
+                partner = next(u for u in out["variants"] if u["variant"] == v["variant"]) \
+                    if v["code"] != "tree" else out["variants"][0]
+                if partner is not v:
+                    v["paired"] = dict(paired_ratio(partner["runs"], v["runs"]),
+                                       against={"variant": partner["variant"], "code": partner["code"]})
             out_path.write_text(json.dumps(out, indent=1))
     for v in out["variants"]:
         tr = "" if args.integrator != "mpg" else "; by training spp: " + ", ".join(
@@ -149,7 +155,9 @@ def main() -> int:
               f"spp {v['spp']:.1f}{between}{tr}")
         pr = v.get("paired")
         if pr is not None:
-            print(f"   MSE of the first over this one: {pr['ratio']:.3f}, 95 % interval "
+            ag = pr["against"]
+            label = json.dumps(ag["variant"]) + ("" if args.baseline is None else f" [{ag['code']}]")
+            print(f"   MSE of {label} over this one: {pr['ratio']:.3f}, 95 % interval "
                   f"[{pr['ci95'][0]:.3f}, {pr['ci95'][1]:.3f}] ({pr['seeds']} paired seeds; above 1: this one lower)")
     print(f"wrote {out_path}")
     return 0

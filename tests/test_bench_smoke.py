@@ -241,6 +241,7 @@ def test_fresh_process_script(env, tmp_path):
         assert sum(g["renders"] for g in v["mse_by_training_spp"].values()) == 2
     assert all(v["code"] == "tree" and v["seconds_between_passes"] >= 0.0 for v in d["variants"])
     assert "paired" not in d["variants"][0] and d["variants"][1]["paired"]["seeds"] == 2
+    assert d["variants"][1]["paired"]["against"] == {"variant": {}, "code": "tree"}
     assert "95 % interval" in out.stdout
     bad = subprocess.run(base + ["--variants", "[1]"], capture_output=True, text=True, timeout=60, env=run_env)
     assert bad.returncode == 2 and "JSON object" in bad.stderr
@@ -268,6 +269,7 @@ def test_fresh_process_baseline(env, tmp_path):
     assert out.returncode == 0, out.stderr
     d = json.loads(dest.read_text())
     assert [(v["variant"], v["code"]) for v in d["variants"]] == [({}, "tree"), ({}, "HEAD")]
+    assert d["variants"][1]["paired"]["against"] == {"variant": {}, "code": "tree"}
     for v in d["variants"]:
         assert len(v["runs"]) == 2 and v["spp"] > 0 and v["seed_variance"] > 0
     assert "[HEAD]" in out.stdout and "[tree]" in out.stdout

@@ -734,12 +734,14 @@ PYBIND11_MODULE(_core, m) {
         // begin/end: only photons [begin, end) of the `count`, weighted as in
         // the whole trace (consecutive ranges' buffers, appended, are its buffer).
         if (threads < 0) throw std::invalid_argument("threads must be >= 0");
-        const uint64_t b = begin.is_none() ? 0 : begin.cast<uint64_t>();
-        const uint64_t e = end.is_none() ? count : end.cast<uint64_t>();
-        if (b > e || e > count)
+        // (as signed integers first: a negative bound is a ValueError, not a cast error)
+        const long long bs = begin.is_none() ? 0LL : begin.cast<long long>();
+        const long long es = end.is_none() ? (long long)count : end.cast<long long>();
+        if (bs < 0 || es < bs || (unsigned long long)es > count)
           throw std::invalid_argument("trace_photons: need 0 <= begin <= end <= count, got begin " +
-                                      std::to_string(b) + ", end " + std::to_string(e) + ", count " +
+                                      std::to_string(bs) + ", end " + std::to_string(es) + ", count " +
                                       std::to_string(count));
+        const uint64_t b = uint64_t(bs), e = uint64_t(es);
         auto buf = std::make_shared<SubpathBuffer>();
         auto* p = dynamic_cast<const PathIntegrator*>(&i);
         if (p && p->chains() && e > b) {

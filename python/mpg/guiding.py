@@ -652,14 +652,27 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # builds"): build b holds photons [0, N min(1, 2^b / FIRST)) of one
     # N-photon trace, each build tracing only the range it adds.
     pg_state: dict[str, Any] = {"bufs": [], "traced": 0, "builds": 0, "mean": 0.0, "seconds": 0.0,
-                                "samples": 0, "in_last": 0}
+                                "in_last": 0}
+
+    def photon_guide_want(builds: int) -> int:
+        """The photons the guide holds at its build number `builds` (from 0)."""
+        share = min(1.0, 2.0 ** builds / PHOTON_GUIDE_FIRST)
+        return n_photon_guide if share >= 1.0 else max(1, int(n_photon_guide * share))
+
+    def photon_guide_next_seconds() -> float:
+        """What the next build's photons will take to trace, at the speed seen
+        so far (0 before any: the first build's are in the training's clock
+        anyway, and a continuation only follows a build)."""
+        if n_photon_guide <= 0 or pg_state["traced"] <= 0:
+            return 0.0
+        more = photon_guide_want(pg_state["builds"]) - pg_state["traced"]
+        return max(more, 0) * pg_state["seconds"] / pg_state["traced"]
 
     def photon_guide_buffers() -> list:
         """The photon guide's buffers for the next build (grown to its share)."""
         if n_photon_guide <= 0:
             return []
-        share = min(1.0, 2.0 ** pg_state["builds"] / PHOTON_GUIDE_FIRST)
-        want = n_photon_guide if share >= 1.0 else max(1, int(n_photon_guide * share))
+        want = photon_guide_want(pg_state["builds"])
         pg_state["builds"] += 1
         if want > pg_state["traced"]:
             tp = _time.monotonic()
@@ -669,7 +682,6 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             pg_state["traced"] = want
             if len(b) > 0:
                 pg_state["bufs"].append(b)
-                pg_state["samples"] += len(b)
                 # (the mean of every sample so far, whatever their order or ranges)
                 pg_state["mean"] = _order_free_mean(np.concatenate([x.arrays()["weight"]
                                                                     for x in pg_state["bufs"]]))
@@ -903,7 +915,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             k_last = k // 2
             per_spp = max(last_pass_t / k_last, 1e-6)
             around = max(last_iter_t - last_pass_t, 0.0)
-            reserve = 2.0 * (guide.build_seconds if guide is not None and samples_last > 0 else 0.0)
+            # (and the photons the guide built again adds: the photon guide grows)
+            reserve = 2.0 * (guide.build_seconds if guide is not None and samples_last > 0 else 0.0) + \
+                photon_guide_next_seconds()
             cont_bufs = [buf]
             while True:
                 # (half of the time left, as the render sizes its passes, or the
