@@ -22,8 +22,9 @@ the working tree's: a change without a switch (a faster loop) measured in
 one run. Every variant after the first also gets a paired mean-MSE ratio
 with a 95 % bootstrap interval over the seeds (above 1: it is the lower;
 results file: "paired", with "against"): a REV run against the same
-variant's tree run, a tree run against the first variant's. Per render it also records `seconds_between_passes`, the render's
-wall time outside the core's passes (mpg's maps, guides, bookkeeping).
+variant's tree run, a tree run against the first variant's. Per render it
+also records `seconds_between_passes`, the render's wall time outside the
+core's passes (mpg's maps, guides, bookkeeping).
 
 Each variant is a JSON object of integrator parameters ('{}': the
 defaults), passed as -P NAME=VALUE. Needs the scene's reference in the

@@ -105,8 +105,9 @@ def test_photon_ranges_appended_are_the_whole_trace(scenes_dir):
     sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="24")
     integ = _core.make_integrator(sc.core, "mpg", dict(record=True))
     whole = integ.trace_photons(30_001, 9, threads=2).arrays()
-    # (one empty range; a thread takes 4096 photons or more: the third
-    # range runs on 3 threads, the fourth on 2, the first on 1)
+    # (one empty range; a thread takes 4096 photons or more, and no more
+    # threads than cores: the third range runs on up to 3 threads, the
+    # fourth on 2, the first on 1)
     cuts = [0, 5_000, 5_000, 17_500, 30_001]
     parts = [integ.trace_photons(30_001, 9, threads=t, begin=a, end=b).arrays()
              for t, (a, b) in zip((1, 2, 3, 2), zip(cuts[:-1], cuts[1:]))]

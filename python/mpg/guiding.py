@@ -651,8 +651,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # (PHOTON_GUIDE_FIRST; design-notes "The photon guide grown over the
     # builds"): build b holds photons [0, N min(1, 2^b / FIRST)) of one
     # N-photon trace, each build tracing only the range it adds.
-    pg_state: dict[str, Any] = {"bufs": [], "traced": 0, "builds": 0, "mean": 0.0, "seconds": 0.0,
-                                "in_last": 0}
+    pg_state: dict[str, Any] = {"bufs": [], "weights": [], "traced": 0, "builds": 0, "mean": 0.0,
+                                "seconds": 0.0, "in_last": 0}
 
     def photon_guide_want(builds: int) -> int:
         """The photons the guide holds at its build number `builds` (from 0)."""
@@ -682,9 +682,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             pg_state["traced"] = want
             if len(b) > 0:
                 pg_state["bufs"].append(b)
+                pg_state["weights"].append(b.arrays()["weight"])   # (each range's, read once)
                 # (the mean of every sample so far, whatever their order or ranges)
-                pg_state["mean"] = _order_free_mean(np.concatenate([x.arrays()["weight"]
-                                                                    for x in pg_state["bufs"]]))
+                pg_state["mean"] = _order_free_mean(np.concatenate(pg_state["weights"]))
         return list(pg_state["bufs"])
 
     def build(buf, photons: bool = True):
