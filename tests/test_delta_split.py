@@ -382,3 +382,130 @@ def test_mpg_takes_the_sobol_extra_paths_by_default(sphere):
     assert off.stats["integrator_params"]["delta_split_sobol"] is False
     with pytest.raises(mpg.RenderError, match="delta_split_sobol"):
         mpg.render(sphere, {"type": "path", "delta_split_sobol": "maybe"}, spp=1, progress=False)
+
+
+def test_record_delta_leaves_the_image_and_returns_each_samples_own_delta_light(sphere):
+    """RenderJob(record_delta=True): the pass's sums bit for bit as without
+    it, plus per pixel the sums and squares of each sample's own path's light
+    seen through delta scattering only -- non-negative, finite, some of it
+    where the camera sees the light in the sphere, and its mean that light's
+    (camera_delta=only's image, |z| < 5 on the lit pixels' total)."""
+    a = run_pass(sphere, "path", 64, 7)
+    b = run_pass(sphere, "path", 64, 7, None, record_delta=True)
+    assert np.array_equal(a["sum"], b["sum"]) and np.array_equal(a["sum_sq"], b["sum_sq"])
+    assert "delta_sum" not in a
+    ds, ds2 = np.asarray(b["delta_sum"]), np.asarray(b["delta_sum_sq"])
+    assert ds.shape == (RES, RES, 3) and np.isfinite(ds).all() and ds.min() >= 0 and np.all(ds2 >= 0)
+    assert ds.sum() > 0
+    # with a split map too (the sample's own path, not the split's mean)
+    c = run_pass(sphere, "path", 64, 7, None, record_delta=True,
+                 delta_split_map=np.full((RES, RES), 3.0, np.float32))
+    assert np.isfinite(np.asarray(c["delta_sum"])).all()
+    n = 1024
+    only = mpg.render(sphere, {"type": "path", "camera_delta": "only"}, spp=4 * n, seed=17, progress=False)
+    lit = only.rgb.mean(axis=2) > 0
+    d = run_pass(sphere, "path", n, 29, None, record_delta=True)
+    m = np.asarray(d["delta_sum"])[lit] / n
+    v = (np.asarray(d["delta_sum_sq"])[lit] / n - m * m) / (n - 1)
+    z = (m.sum() - only.rgb[lit].sum()) / np.sqrt(v.sum() + only.variance[lit].sum())
+    assert abs(z) < 5, z
+
+
+def _refiner_acc(n=7):
+    """A training of n spp on 32 x 32 pixels: glass (delta rays) in columns
+    8..23, its light seen there in one pixel (16, 16), none elsewhere."""
+    var_t = np.full((32, 32), 1.0)
+    var_d = np.zeros((32, 32))
+    var_d[16, 16] = 50.0
+    d_rays = np.zeros((32, 32))
+    d_rays[:, 8:24] = 2.0
+    return _acc(var_d, var_t, d_rays, rays=4.0, n=n)
+
+
+def _render_sums(var_d, n, mean=0.25):
+    """The render's own delta sums and squares of n samples with per-sample variance var_d."""
+    h, w = var_d.shape
+    s = np.repeat(np.full((h, w, 1), mean * n), 3, axis=2)
+    s2 = np.repeat(((var_d * (n - 1) / n) + mean * mean)[..., None] * n, 3, axis=2)
+    return s, s2
+
+
+def test_the_delta_split_check_keeps_the_training_split_where_the_render_sees_nothing_new():
+    """DeltaSplitRefiner: learn_delta_split hands it the means it solved
+    against; render samples that see no light keep the training's map and
+    its branch choice; fewer than 2 render samples or training spp are
+    refused."""
+    from mpg.chain_rates import DeltaSplitRefiner
+    acc = _refiner_acc(n=16)
+    q = np.zeros((32, 32), np.float32)
+    means = (1e-3, 1.0)
+    k0, info0 = learn_delta_split(acc, q, objective="mse", branched=True, means=means)
+    assert info0["means"] == means and np.any(k0 > 1)
+    ref = DeltaSplitRefiner(acc, means, objective="mse", branched=True, base=k0)
+    k, b, info = ref.update(*_render_sums(np.zeros((32, 32)), 16), 16)
+    np.testing.assert_array_equal(k, k0)
+    assert b is None and info["delta_split_online_updates"] == 1 and info["delta_split_online_glass"] == 0
+    assert info["delta_split_online_fraction"] == pytest.approx(float(np.mean(k0 > 1)))
+    with pytest.raises(ValueError):
+        ref.update(*_render_sums(np.zeros((32, 32)), 4), 1)
+    with pytest.raises(ValueError):
+        DeltaSplitRefiner(_refiner_acc(n=1), means)
+
+
+def test_the_held_out_choice_splits_the_glass_only_where_the_render_sees_light_the_training_missed():
+    """The refiner's held-out choice: the render's own samples find the light
+    in many glass pixels the training's split left alone (a bumpy slab's thin
+    images) -> every glass pixel split twice, branched; they find it only
+    where the training split (one image the training saw, the smooth sphere)
+    -> the training's map. Outside the glass nothing is split by it."""
+    from mpg.chain_rates import DeltaSplitRefiner
+    acc = _refiner_acc(n=7)
+    q = np.zeros((32, 32), np.float32)
+    means = (1.0, 8.0)
+    k0, _ = learn_delta_split(acc, q, objective="mse", branched=True, means=means)
+    assert 0 < np.sum(k0 > 1) < 32 * 16
+    ref = DeltaSplitRefiner(acc, means, objective="mse", branched=True, base=k0)
+    rng = np.random.default_rng(5)
+    spread = np.zeros((32, 32))
+    spread[:, 8:24] = np.where(rng.random((32, 16)) < 0.3, 20.0, 0.0)   # across the glass
+    k, b, info = ref.update(*_render_sums(spread, 8), 8)
+    assert info["delta_split_online_glass"] == 1 and info["delta_split_online_glass_gain"] > 1
+    assert np.all(k[:, 8:24] >= 2) and np.all(k[:, :8] == 1) and np.all(k[:, 24:] == 1) and b is None
+    where_split = np.where(k0 > 1, 50.0, 0.0)   # only where the training split
+    k1, _, info1 = ref.update(*_render_sums(where_split, 8), 8)
+    assert info1["delta_split_online_glass"] == 0 and info1["delta_split_online_glass_gain"] < 1
+    np.testing.assert_array_equal(k1, k0)
+    # NaN/Inf in the render's sums: a defined choice
+    bad = list(_render_sums(spread, 8))
+    bad[1][0, 8, 0] = np.nan
+    bad[0][1, 9, 1] = np.inf
+    k2, _, info2 = ref.update(bad[0], bad[1], 8)
+    assert np.isfinite(info2["delta_split_online_glass_gain"]) and np.isfinite(k2).all()
+
+
+def test_mpg_checks_its_delta_split_and_stays_unbiased(sphere, sphere32_path_ref):
+    """mpg's delta split checked between its passes (delta_split_online, the
+    default): checked at least twice, the image agrees with the path tracer
+    (|z| < 5 on the image and its quarters, p < 6e-7 each) and reports the
+    map it ran last; off, no check. With the glass split forced (the check's
+    other choice) the image agrees too."""
+    img = mpg.render(sphere, "mpg", spp=384, seed=43, progress=False)
+    st = img.stats
+    assert st["delta_split_online_updates"] >= 2 and st["rejected_samples"] == 0
+    k = img.delta_split_map
+    assert float(0.0 if k is None else np.mean(k > 1)) == pytest.approx(st["delta_split_online_fraction"])
+    assert image_zmax(img, sphere32_path_ref, REGIONS) < 5
+    off = mpg.render(sphere, {"type": "mpg", "delta_split_online": False}, spp=64, seed=2, progress=False)
+    assert "delta_split_online_updates" not in off.stats
+    import mpg.chain_rates as cr
+    real = cr.DeltaSplitRefiner.model_f
+    try:   # (the glass split always: its F the lower)
+        cr.DeltaSplitRefiner.model_f = lambda self, k, wb: float(np.sum(k == 1))
+        glass = mpg.render(sphere, "mpg", spp=384, seed=47, progress=False)
+    finally:
+        cr.DeltaSplitRefiner.model_f = real
+    assert glass.stats["delta_split_online_glass"] == 1 and glass.stats["rejected_samples"] == 0
+    assert np.mean(glass.delta_split_map > 1) > np.mean(img.delta_split_map > 1 if img.delta_split_map is not None else 0)
+    assert image_zmax(glass, sphere32_path_ref, REGIONS) < 5
+    with pytest.raises(mpg.RenderError, match="delta_split_online"):
+        mpg.render(sphere, {"type": "mpg", "delta_split_online": "maybe"}, spp=4, progress=False)

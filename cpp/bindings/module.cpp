@@ -181,12 +181,14 @@ py::dict pass_to_dict(PassResult& r, py::handle base) {
     put("trace_lobes", r.trace_lobes, grey);
     put("trace_pt_lobes", r.trace_pt_lobes, grey);
     put("trace_rays", r.trace_rays, grey);
-    put("delta_sum", r.delta_sum, rgb);
-    put("delta_sum_sq", r.delta_sum_sq, rgb);
     put("bdelta_n", r.bdelta_n, grey);
     put("bdelta_rays", r.bdelta_rays, grey);
     put("bdelta_within", r.bdelta_within, grey);
     put("udelta_within", r.udelta_within, grey);
+  }
+  if (!r.delta_sum.empty()) {   // PassConfig::record_costs or record_delta
+    put("delta_sum", r.delta_sum, rgb);
+    put("delta_sum_sq", r.delta_sum_sq, rgb);
   }
   out["lt_photons"] = r.lt_photons;
   out["lt_work_rays"] = r.lt_work_rays;
@@ -769,12 +771,14 @@ PYBIND11_MODULE(_core, m) {
                        py::object delta_split_map, py::object pixel_split_map, bool stratify,
                        uint64_t sample_offset, py::object guided_trace_map, bool record_classes,
                        bool light_trace, py::object delta_branch_map, bool record_branch,
-                       int lt_wave_blocks, uint64_t sequence_epoch, py::object deep_rate_map) {
+                       int lt_wave_blocks, uint64_t sequence_epoch, py::object deep_rate_map,
+                       bool record_delta) {
         if (!scene->committed()) throw std::runtime_error("scene not committed");
         if (spp < 1) throw std::invalid_argument("spp must be >= 1");
         PassConfig cfg; cfg.spp = spp; cfg.seed = seed; cfg.pass = pass; cfg.threads = threads;
         cfg.record_costs = record_costs;
         cfg.record_classes = record_classes;
+        cfg.record_delta = record_delta;
         cfg.record_branch = record_branch;
         cfg.light_trace = light_trace;
         cfg.lt_wave_blocks = lt_wave_blocks;
@@ -838,7 +842,8 @@ PYBIND11_MODULE(_core, m) {
          py::arg("stratify") = false, py::arg("sample_offset") = 0, py::arg("guided_trace_map") = py::none(),
          py::arg("record_classes") = false, py::arg("light_trace") = true, py::arg("delta_branch_map") = py::none(),
          py::arg("record_branch") = false, py::arg("lt_wave_blocks") = 1024,
-         py::arg("sequence_epoch") = 0, py::arg("deep_rate_map") = py::none())
+         py::arg("sequence_epoch") = 0, py::arg("deep_rate_map") = py::none(),
+         py::arg("record_delta") = false)
       .def("wait", [](RenderJob& j, double seconds) { py::gil_scoped_release nogil; return j.wait_for(seconds); })
       .def("cancel", &RenderJob::cancel)
       .def_property_readonly("progress", &RenderJob::progress)

@@ -68,7 +68,12 @@ void RenderJob::run() {
   result_.sum_sq.assign(size_t(W) * H * 3, 0.0);
   const bool costs = cfg_.record_costs;
   const bool classes = cfg_.record_classes;
+  const bool delta_rec = costs || cfg_.record_delta;
   constexpr int NC = Stats::kClasses;
+  if (cfg_.record_delta && !costs) {
+    result_.delta_sum.assign(size_t(W) * H * 3, 0.0);
+    result_.delta_sum_sq.assign(size_t(W) * H * 3, 0.0);
+  }
   if (classes) {
     result_.class_sum.assign(size_t(W) * H * NC, 0.0);
     result_.class_sum_sq.assign(size_t(W) * H * NC, 0.0);
@@ -298,16 +303,21 @@ void RenderJob::run() {
                 }
               }
             }
-            if (costs) {
-              // The path tracer alone; a rejected sample (L = 0) counts 0 here too.
-              const Color A = ok ? L + st.sample_alt_delta : Color(0.f);
-              if (ok && st.sample_owned_hit) hits += 1.0;
+            if (delta_rec) {
+              // the sample's own camera path's light seen through delta
+              // scattering only (the last sub-sample's in a split pixel: one
+              // path's, whatever the splits)
               const Color Dl = st.sample_delta_L;
               if (ok && std::isfinite(Dl.x) && std::isfinite(Dl.y) && std::isfinite(Dl.z))
                 for (int c = 0; c < 3; ++c) {
                   ds[c] += Dl[c];
                   ds2[c] += double(Dl[c]) * Dl[c];
                 }
+            }
+            if (costs) {
+              // The path tracer alone; a rejected sample (L = 0) counts 0 here too.
+              const Color A = ok ? L + st.sample_alt_delta : Color(0.f);
+              if (ok && st.sample_owned_hit) hits += 1.0;
               if (std::isfinite(A.x) && std::isfinite(A.y) && std::isfinite(A.z))
                 for (int c = 0; c < 3; ++c) {
                   const double v = std::max(double(A[c]), 0.0);
@@ -437,10 +447,13 @@ void RenderJob::run() {
                 result_.trace_sum[f][i + c] = ts[f][c];
                 result_.trace_sum_sq[f][i + c] = ts2[f][c];
               }
+            }
+          }
+          if (delta_rec)
+            for (int c = 0; c < 3; ++c) {
               result_.delta_sum[i + c] = ds[c];
               result_.delta_sum_sq[i + c] = ds2[c];
             }
-          }
         }
       }
       tiles_done_.fetch_add(1);

@@ -123,6 +123,12 @@ struct PassConfig {
   // handoff_all gives the pixels it hands off their learned rate there.
   std::shared_ptr<const std::vector<float>> deep_rate_map;
   bool record_costs = false;
+  // Per pixel the sums and squares of each sample's light seen through delta
+  // scattering only (PassResult::delta_sum / delta_sum_sq, one camera path's
+  // own part a sample) without the rest of record_costs: the render's passes
+  // for mpg's delta split refined by the render's own samples
+  // (chain_rates.DeltaSplitRefiner). record_costs records them too.
+  bool record_delta = false;
   // ... and, with record_costs and a branching integrator, the records of the
   // branched and plain delta paths (PassResult::bdelta_*; mpg's delta_plain)
   bool record_branch = false;

@@ -737,7 +737,95 @@ def learn_delta_split(acc: CostAccumulator, q: np.ndarray, radius: int = 3, obje
         info["delta_split_plain_fraction"] = float(np.mean(plain[split])) if np.any(split) else 0.0
     # per pixel whether the split's paths branch (popped by the caller)
     info["branch_map"] = np.where(split & plain, 0.0, 1.0).astype(np.float32)
+    # (v_mean, c_mean) the counts were solved against (popped by the caller;
+    # DeltaSplitRefiner weighs its choice against them)
+    info["means"] = (v_mean, c_mean)
     return k.astype(np.float32), info
+
+
+class DeltaSplitRefiner:
+    """The learned delta split checked between the render's passes by the
+    render's own samples (design-notes "The delta split's held-out check").
+
+    learn_delta_split's counts rest on B_p, the variance of the light seen
+    through delta scattering only in the pixel's window, and a short
+    training sees the light's thin images in bumpy glass in few of its
+    pixels: it splits where it saw them, and its mean(wV) misses most of
+    that light (double_slabs at 2 s: 18.7 in the render's first 5 spp
+    against 4.5 for the training's whole mean(wV)). The render's passes
+    record each sample's own path's part of that light (RenderJob's
+    record_delta), and they are independent of the training's choice of
+    pixels, so their sum over the glass is unbiased where each pixel's is
+    noise. Before a pass, `update` compares in the model's F = mean(wV)
+    mean(C) (learn_delta_split's, with the training's costs o, weights and
+    branch choices, and the render's light in place of the training's part
+    of mean(wV)) the training's split (`base`) with every pixel whose camera
+    paths saw delta scattering ("glass") split at least twice, and runs the
+    better one. With one training's maps held fixed, the glass split beat
+    the learned one 1.5-2x in efficiency on double_slabs and 1.7x on the
+    slab, and cost the sphere 0.8x, whose one image the training saw
+    (docs/results.md, forty-third session). Re-solving Eq. 3 per pixel with
+    the render's samples pooled in was level at 1-2 s and lost on the
+    sphere and ring at 5 s (more split pixels for ~10 % fewer spp). The
+    image stays unbiased: each pass's counts are fixed before it, and any
+    count k >= 1 leaves a sample unbiased."""
+
+    def __init__(self, acc: CostAccumulator, means: tuple[float, float], objective: str = "relmse",
+                 radius: int = 3, branched: bool = False, base: np.ndarray | None = None):
+        if acc.n < 2:
+            raise ValueError("the delta split's check needs a training of at least 2 spp")
+        n = float(acc.n)
+        self.v_mean, self.c_mean = float(means[0]), float(means[1])
+        self.branched = bool(branched)
+        self.plain = np.zeros(acc.delta_rays.shape, dtype=bool)
+        if self.branched and self.v_mean > 0.0 and self.c_mean > 0.0:
+            # (the training's records decide where the paths are plain, as in learn_delta_split)
+            keep, ok = _branch_keep(acc, objective, radius)
+            self.plain = ok & (keep > BRANCH_KEEP_MAX)
+        self.base = (np.ones(acc.delta_rays.shape, dtype=np.float32) if base is None
+                     else np.maximum(np.asarray(base, dtype=np.float32), 1.0))
+        self.w = _weights(_finite(acc.sum) / n, objective, radius)
+        self.o = 1.0 + _finite(acc.delta_rays) / n
+        self.glass = self.o > 1.0
+        self.glass_map = np.where(self.glass, np.maximum(self.base, 2.0), self.base).astype(np.float32)
+        # (the training's own part of v_mean that is this light's: replaced by the render's)
+        self.v_delta = float(np.mean(self.w * _sample_variance(acc.delta_sum, acc.delta_sum_sq, n)))
+        self.updates = 0
+
+    def model_f(self, k: np.ndarray, wb: np.ndarray) -> float:
+        """F = mean(wV) mean(C) of delta split k in learn_delta_split's model
+        (delta_split_effect's dv and dc) with wb the weighted variance per
+        pixel of that light (one plain path's), which also replaces the
+        training's part of mean(wV) that is this light's."""
+        split = k > 1.0
+        km1 = np.maximum(k - 1.0, 1.0)
+        br = self.branched & ~self.plain
+        kept = np.where(br, BRANCH_RESIDUAL / km1, 1.0 / np.maximum(k, 1.0))
+        cost = np.where(br, TREE_COST * self.o * km1, self.o * km1)
+        dv = float(np.mean(np.where(split, wb * (1.0 - kept), 0.0)))
+        dc = float(np.mean(np.where(split, cost, 0.0)))
+        v = max(self.v_mean - self.v_delta, 0.0) + float(np.mean(wb))
+        return max(v - dv, 0.0) * (self.c_mean + dc)
+
+    def update(self, ds: np.ndarray, ds2: np.ndarray, n: int) -> tuple[np.ndarray | None, np.ndarray | None, dict]:
+        """(counts or None: no split, branch map or None: all branch, info)
+        for the next passes from the render's n spp so far (n >= 2): ds / ds2
+        the per-pixel sums and squares (height x width x 3) of its samples'
+        own paths' light seen through delta scattering only."""
+        if n < 2:
+            raise ValueError("the delta split's check needs at least 2 samples of the render")
+        self.updates += 1
+        wb = self.w * _sample_variance(ds, ds2, float(n))
+        fb, fg = self.model_f(self.base, wb), self.model_f(self.glass_map, wb)
+        glass = bool(np.any(self.glass)) and fg < fb
+        k = self.glass_map if glass else self.base
+        split = k > 1.0
+        b = np.where(split & self.plain, 0.0, 1.0).astype(np.float32)
+        info = {"delta_split_online_updates": self.updates, "delta_split_online_glass": int(glass),
+                "delta_split_online_glass_gain": fb / fg if fg > 0.0 else 1.0,
+                "delta_split_online_fraction": float(np.mean(split)),
+                "delta_split_online_mean": float(np.mean(k[split])) if np.any(split) else 1.0}
+        return ((k if np.any(split) else None), (b if np.any(split) and not np.all(b > 0) else None), info)
 
 
 # learn_jointly: at most this many rounds of the delta split and the rates.
@@ -1026,11 +1114,18 @@ class PixelSplitRefiner:
         if acc.n < 1:
             raise ValueError("the pixel split's refiner needs a training of at least 1 spp (its costs)")
         self.w, self.v, self.c = _pixel_split_model(acc, q, kd, radius, objective, branched)
+        self._model_args = (acc, q, radius, objective)   # (set_delta_split)
         # (a training of 1 spp has no variance: the render's own samples alone)
         self.n_t = float(acc.n) if acc.n >= 2 else 0.0
         self.radius, self.k_max, self.iterations = radius, k_max, iterations
         self.where, self.max_cost = where, max_cost
         self.updates = 0
+
+    def set_delta_split(self, kd: np.ndarray, branched: bool | np.ndarray = False) -> None:
+        """The model again for a new delta split (DeltaSplitRefiner's): the
+        training's V and C at those counts and branch choices."""
+        acc, q, radius, objective = self._model_args
+        self.w, self.v, self.c = _pixel_split_model(acc, q, kd, radius, objective, branched)
 
     def solve(self, v: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
         """Eq. 4's map (capped) for a sample's variance v per pixel (None: the training's model)."""

@@ -178,7 +178,9 @@ def _run(args) -> int:
             if st.get("delta_split", "off") != "off":
                 rates += (f"; light seen in the glass split in "
                           f"{100 * st.get('delta_split_fraction', 1.0):.1f} % of the pixels "
-                          f"(mean {st.get('delta_split_mean', 0.0):.1f} paths)")
+                          f"(mean {st.get('delta_split_mean', 0.0):.1f} paths)"
+                          + (", then in every pixel that sees glass (the render's own samples chose it)"
+                             if st.get("delta_split_online_glass") else ""))
             if st.get("pixel_split", "off") != "off":
                 rates += (f"; pixels split ({st['pixel_split']}) in "
                           f"{100 * st.get('pixel_split_fraction', 1.0):.1f} % of the pixels "

@@ -20,7 +20,7 @@ import numpy as np
 
 from mpg.chain_rates import (HANDOFF_NEGLIGIBLE, JOINT_MIN_SAMPLES, PHOTON_PILOT, STEP_COST, CostAccumulator,
                              _sample_variance, guided_trace_map, learn_delta_split, learn_photon_rate,
-                             learn_rates, PixelSplitRefiner, learn_jointly, learn_rates_traced,
+                             learn_rates, PixelSplitRefiner, DeltaSplitRefiner, learn_jointly, learn_rates_traced,
                              delta_split_effect)
 from mpg.errors import RenderError
 
@@ -214,6 +214,11 @@ PIXEL_SPLIT_MAX_COST = 1.1
 TRACE_DEFENSIVE = 0.35
 TRACE_DEFENSIVE_KAPPA = 400.0
 PIXEL_SPLIT_ONLINE = True
+# The learned delta split checked between the render's passes against every
+# glass pixel split, by the render's own samples (delta_split_online;
+# chain_rates.DeltaSplitRefiner): a short training sees the light's thin
+# images in bumpy glass in few pixels (docs/results.md, forty-third session)
+DELTA_SPLIT_ONLINE = True
 # Photons whose sub-path samples join every training guide (photon_guide;
 # design-notes "Photons in every guide"; docs/results.md, twenty-eighth
 # session): the leaves then know the chain types the light sends, which the
@@ -525,6 +530,9 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # pixel_split_online: the learned split refined between the render's passes
     # by the render's own samples (chain_rates.PixelSplitRefiner)
     psplit_online = _as_bool("pixel_split_online", params.pop("pixel_split_online", PIXEL_SPLIT_ONLINE))
+    # delta_split_online: the learned delta split checked between the passes
+    # against every glass pixel split (chain_rates.DeltaSplitRefiner)
+    dsplit_online = _as_bool("delta_split_online", params.pop("delta_split_online", DELTA_SPLIT_ONLINE))
     psplit = _split_setting("pixel_split", params.pop("pixel_split", PIXEL_SPLIT), ("off", "mse", "relmse", "handoff"))
     # ... with its predicted cost per sample capped ("none": no cap)
     psplit_cap = params.pop("pixel_split_max_cost", PIXEL_SPLIT_MAX_COST)
@@ -955,6 +963,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
             sys.stderr.write("\n")
     rate_info: dict[str, Any] = {}
     qmap = kmap = bmap = None
+    split_means = None   # (the means the learned delta split was solved against: DeltaSplitRefiner)
     cam = scene.desc.camera
 
     def uniform(k: float) -> np.ndarray:
@@ -964,9 +973,10 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     def learned(m: np.ndarray, info: dict) -> np.ndarray | None:
         """A learned split map, None when it splits no pixel; its summary joins
         rate_info (the delta split's branch map, info["branch_map"], goes to bmap)."""
-        nonlocal bmap
+        nonlocal bmap, split_means
         info = dict(info)
         b = info.pop("branch_map", None)
+        split_means = info.pop("means", split_means)
         rate_info.update(info)
         if not np.any(m > 1):
             return None
@@ -1081,6 +1091,22 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     elif isinstance(psplit, int) and psplit > 1:
         smap = uniform(psplit)
         rate_info.update(pixel_split_fraction=1.0, pixel_split_mean=float(psplit))
+    # The learned delta split checked by the render's own samples (before the
+    # pixel split's refinement, whose model it then updates)
+    delta_refine = None
+    if dsplit_online and split == "auto" and split_means is not None and costs is not None and costs.n >= 2:
+        drefiner = DeltaSplitRefiner(costs, split_means, objective=objective,
+                                     branched=params["delta_branch"] > 0, base=kmap)
+
+        glass_ran = [0]   # (the map the pixel split's model last saw: 0 the training's, 1 the glass)
+
+        def delta_refine(ds, ds2, n):
+            k, b, info = drefiner.update(ds, ds2, n)
+            if refiner is not None and info["delta_split_online_glass"] != glass_ran[0]:
+                refiner.set_delta_split(k if k is not None else uniform(1),
+                                        (b if b is not None else True) if params["delta_branch"] > 0 else False)
+                glass_ran[0] = info["delta_split_online_glass"]
+            return k, b, info
     if auto_halvings:
         params["step_halvings"] = halvings_info["step_halvings"]
     seconds_training = _time.monotonic() - t0
@@ -1123,7 +1149,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
                  chain_rate_map=qmap, delta_split_map=kmap, pixel_split_map=smap, sampler=sampler,
                  guided_trace_map=gmap, record_classes=record_classes, delta_branch_map=bmap,
                  deep_rate_map=dmap,
-                 seconds_per_spp=pass_hint, pixel_split_refine=None if refiner is None else refiner.update)
+                 seconds_per_spp=pass_hint, pixel_split_refine=None if refiner is None else refiner.update,
+                 delta_split_refine=delta_refine)
     st: dict[str, Any] = img.stats
     st["warnings"] = list(dict.fromkeys(st.get("warnings", []) + warnings))
     st["integrator"] = "mpg"
@@ -1187,10 +1214,12 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # selective activation then stopped
     est = st.get("chain_estimates", 0)
     st["activation_rate"] = ((est - st.get("chain_inactive", 0)) / est) if est else 0.0
-    st["delta_split"] = ("learned" if split == "auto" else str(split)) if kmap is not None else "off"
+    split_ran = kmap is not None or st.get("delta_split_online_fraction", 0.0) > 0.0   # (or a refined one)
+    st["delta_split"] = ("learned" if split == "auto" else str(split)) if split_ran else "off"
     img.chain_rate_map = qmap
-    img.delta_split_map = kmap
-    img.delta_branch_map = bmap
+    if delta_refine is None:   # (refined: render() set the last ones)
+        img.delta_split_map = kmap
+        img.delta_branch_map = bmap
     # (on where any pass split: the training's map, or a refined one)
     st["pixel_split"] = str(psplit) if (smap is not None or st.get("pixel_split_samples", 0) > 0) else "off"
     if refiner is None:

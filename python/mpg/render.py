@@ -34,13 +34,15 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "stree_threshold", "guide_structure", "knn_k", "product", "init", "photons", "photon_guide", "lobe_anchor",
                 "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff",
                 "chain_handoff_negligible",
-                "delta_split", "pixel_split", "pixel_split_max_cost", "pixel_split_online", "limit_in_training", "known_types",
+                "delta_split", "pixel_split", "pixel_split_max_cost", "pixel_split_online", "delta_split_online",
+                "limit_in_training", "known_types",
                 "handoff_guided", "handoff_deep", "learn_trace", "trace_tails", "joint_maps",
                 "trace_min_hits", "joint_min_samples", "delta_plain", "handoff_all", "handoff_all_deep",
                 "trace_defensive", "trace_defensive_kappa", "training_continue", "training_clock"}
 BOOL_PARAMS = {"hide_emitters", "delta_split_sobol", "light_trace_through", "light_trace_area", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "mis_rate", "chain_handoff", "limit_in_training", "known_types",
-               "learn_trace", "trace_tails", "joint_maps", "delta_plain", "pixel_split_online", "handoff_all_deep"}
+               "learn_trace", "trace_tails", "joint_maps", "delta_plain", "pixel_split_online", "delta_split_online",
+               "handoff_all_deep"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
 # The SMS paper's integrators, with their parameter names, map onto `sms`.
 SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
@@ -294,6 +296,7 @@ def render(
     seconds_per_spp: float | None = None,
     pixel_split_refine=None,
     deep_rate_map: np.ndarray | None = None,
+    delta_split_refine=None,
 ) -> Image:
     """Render `scene` and return an Image.
 
@@ -356,6 +359,12 @@ def render(
         refined by the render's own samples"), and each call starts a new epoch of the pixels' Sobol sequences
         (RenderJob's sequence_epoch: fresh shifts, sample_offset from 0), so no later
         film position is a function of a shift the earlier samples depended on.
+    delta_split_refine: a callable (ds, ds2, n) -> (delta split map, delta
+        branch map, info) called at the same points, before pixel_split_refine;
+        ds / ds2 the per-pixel sums and squares of the light each sample's own
+        path saw through delta scattering only (RenderJob's record_delta), over
+        the n spp so far. mpg's chain_rates.DeltaSplitRefiner: the maps it returns
+        (None: no split; all branched) run from that pass on.
     """
     from mpg import _core
 
@@ -427,6 +436,11 @@ def render(
     if pixel_split_refine is not None:
         ks, ks2, kn = np.zeros((h, w, 3)), np.zeros((h, w, 3)), np.zeros((h, w))
         pending_info, ran_map = {}, pixel_split_map   # (the newest solve's stats; the map a counted pass ran with)
+    if delta_split_refine is not None:
+        ds_acc, ds_acc2 = np.zeros((h, w, 3)), np.zeros((h, w, 3))
+        # (the same for the delta split: its maps and stats)
+        pending_dinfo, drefine_info, ran_delta = {}, {}, (delta_split_map, delta_branch_map)
+    refining = pixel_split_refine is not None or delta_split_refine is not None
     # Ctrl-C (and SIGTERM where a caller such as mpg-render maps it to an
     # interrupt) sets a flag the loop checks, instead of raising wherever it
     # lands: a KeyboardInterrupt between two passes (creating a job, adding a
@@ -443,9 +457,13 @@ def render(
             if stop.is_set():
                 interrupted = True
                 break
-            if pixel_split_refine is not None and done >= refine_at:
+            if refining and done >= refine_at:
                 # (before the pass is sized: its time comes off what is left)
-                pixel_split_map, pending_info = pixel_split_refine(ks, ks2, kn, done)
+                if delta_split_refine is not None:
+                    # (first: the pixel split's model counts the delta split's cost)
+                    delta_split_map, delta_branch_map, pending_dinfo = delta_split_refine(ds_acc, ds_acc2, done)
+                if pixel_split_refine is not None:
+                    pixel_split_map, pending_info = pixel_split_refine(ks, ks2, kn, done)
                 refine_at = 2 * done
                 # a new epoch of the Sobol sequences: fresh shifts, counted from 0
                 epoch, epoch_start = epoch + 1, done
@@ -469,7 +487,8 @@ def render(
                                       stratify=sampler == "stratified", sample_offset=done - epoch_start,
                                       guided_trace_map=guided_trace_map, record_classes=record_classes,
                                       delta_branch_map=delta_branch_map, sequence_epoch=epoch,
-                                      deep_rate_map=deep_rate_map)
+                                      deep_rate_map=deep_rate_map,
+                                      record_delta=delta_split_refine is not None)
             except ValueError as e:   # a bad chain_rate_map (shape, values)
                 raise RenderError(str(e)) from None
             cancelled_by_time = False
@@ -511,6 +530,10 @@ def render(
                 ks += kc[..., None] * r["sum"]
                 ks2 += kc[..., None] * r["sum_sq"]
                 kn += kc * k
+            if delta_split_refine is not None:
+                ran_delta, drefine_info = (delta_split_map, delta_branch_map), pending_dinfo
+                ds_acc += r["delta_sum"]
+                ds_acc2 += r["delta_sum_sq"]
             if r["lt_photons"] > 0:
                 lt_acc = r["lt_sum"] if lt_acc is None else lt_acc + r["lt_sum"]
                 lt_acc2 = r["lt_sum_sq"] if lt_acc2 is None else lt_acc2 + r["lt_sum_sq"]
@@ -587,10 +610,13 @@ def render(
         **{k: (float(v) if k.startswith(("max_chain_", "chain_m2", "pt_shared_m2", "limit_")) else int(v))
            for k, v in stats.items()},
         **refine_info,
+        **(drefine_info if delta_split_refine is not None else {}),
     }
     # (class sums None without record_classes, or when no pass finished)
     img = Image(rgb=mean.astype(np.float32), variance=var.astype(np.float32), spp=done,
                 stats=out_stats, class_sum=cls_sum, class_sum_sq=cls_sum2)
     if pixel_split_refine is not None:
         img.pixel_split_map = ran_map   # (the last one a pass that counts ran with)
+    if delta_split_refine is not None:
+        img.delta_split_map, img.delta_branch_map = ran_delta
     return img
