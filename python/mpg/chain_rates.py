@@ -737,9 +737,12 @@ def learn_delta_split(acc: CostAccumulator, q: np.ndarray, radius: int = 3, obje
         info["delta_split_plain_fraction"] = float(np.mean(plain[split])) if np.any(split) else 0.0
     # per pixel whether the split's paths branch (popped by the caller)
     info["branch_map"] = np.where(split & plain, 0.0, 1.0).astype(np.float32)
-    # (v_mean, c_mean) the counts were solved against (popped by the caller;
-    # DeltaSplitRefiner weighs its choice against them)
-    info["means"] = (v_mean, c_mean)
+    # the training's own (v_mean, c_mean) the counts were solved against
+    # (popped by the caller; DeltaSplitRefiner weighs its choice against
+    # them). Not for `means` given: learn_jointly's already hold a split's
+    # effect, which the check would count twice (no check there).
+    if means is None:
+        info["means"] = (v_mean, c_mean)
     return k.astype(np.float32), info
 
 

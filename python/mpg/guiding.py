@@ -1214,7 +1214,7 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # selective activation then stopped
     est = st.get("chain_estimates", 0)
     st["activation_rate"] = ((est - st.get("chain_inactive", 0)) / est) if est else 0.0
-    split_ran = kmap is not None or st.get("delta_split_online_fraction", 0.0) > 0.0   # (or a refined one)
+    split_ran = kmap is not None or st.get("delta_split_paths", 0) > 0   # (or a pass of the check's)
     st["delta_split"] = ("learned" if split == "auto" else str(split)) if split_ran else "off"
     img.chain_rate_map = qmap
     if delta_refine is None:   # (refined: render() set the last ones)
