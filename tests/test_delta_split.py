@@ -71,6 +71,14 @@ def test_bad_split_maps_are_refused(sphere):
         _core.RenderJob(core, other, 1, 0, 0, 0, delta_split_map=np.full((RES, RES), 2, np.float32))
 
 
+def _sums(var, n, mean):
+    """Sums and squares (height x width x 3) of n samples of the given mean
+    whose sample variance per pixel is var."""
+    h, w = var.shape
+    return (np.repeat(np.full((h, w, 1), mean * n), 3, axis=2),
+            np.repeat(((var * (n - 1) / n) + mean * mean)[..., None] * n, 3, axis=2))
+
+
 def _acc(var_d, var_t, delta_rays, rays=4.0, n=64):
     """An accumulator of n samples at q = 1 whose sums give the per-sample
     variance var_t of the pixel and var_d of its light seen through delta
@@ -79,13 +87,8 @@ def _acc(var_d, var_t, delta_rays, rays=4.0, n=64):
     h, w = var_t.shape
     a = CostAccumulator((h, w))
     a.n = n
-
-    def sums(mean, var):
-        return (np.repeat(np.full((h, w, 1), mean * n), 3, axis=2),
-                np.repeat(((var * (n - 1) / n) + mean * mean)[..., None] * n, 3, axis=2))
-
-    a.sum, a.sum_sq = sums(0.5, var_t)
-    a.delta_sum, a.delta_sum_sq = sums(0.25, var_d)
+    a.sum, a.sum_sq = _sums(var_t, n, 0.5)
+    a.delta_sum, a.delta_sum_sq = _sums(var_d, n, 0.25)
     a.rays = np.full((h, w), rays * n)
     a.rate_sum = np.full((h, w), 1.0 * n)
     a.delta_rays = delta_rays * n
@@ -422,12 +425,9 @@ def _refiner_acc(n=7):
     return _acc(var_d, var_t, d_rays, rays=4.0, n=n)
 
 
-def _render_sums(var_d, n, mean=0.25):
+def _render_sums(var_d, n):
     """The render's own delta sums and squares of n samples with per-sample variance var_d."""
-    h, w = var_d.shape
-    s = np.repeat(np.full((h, w, 1), mean * n), 3, axis=2)
-    s2 = np.repeat(((var_d * (n - 1) / n) + mean * mean)[..., None] * n, 3, axis=2)
-    return s, s2
+    return _sums(var_d, n, 0.25)
 
 
 def test_the_delta_split_check_keeps_the_training_split_where_the_render_sees_nothing_new():

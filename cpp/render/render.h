@@ -126,8 +126,8 @@ struct PassConfig {
   // Per pixel the sums and squares of each sample's light seen through delta
   // scattering only (PassResult::delta_sum / delta_sum_sq, one camera path's
   // own part a sample) without the rest of record_costs: the render's passes
-  // for mpg's delta split refined by the render's own samples
-  // (chain_rates.DeltaSplitRefiner). record_costs records them too.
+  // for mpg's held-out check of its delta split (chain_rates.DeltaSplitRefiner).
+  // record_costs records them too.
   bool record_delta = false;
   // ... and, with record_costs and a branching integrator, the records of the
   // branched and plain delta paths (PassResult::bdelta_*; mpg's delta_plain)

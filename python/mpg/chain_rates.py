@@ -657,15 +657,23 @@ def delta_split_effect(acc: CostAccumulator, k: np.ndarray, radius: int = 3, obj
         return 0.0, 0.0
     b, o = _delta_parts(acc, objective, radius)
     k = np.asarray(k, dtype=float)
+    kept, cost = _split_terms(o, k, branched)
     split = k > 1.0
-    km1 = np.maximum(k - 1.0, 1.0)
-    br = _branch_where(branched, k.shape)
-    kept = np.where(br, BRANCH_RESIDUAL / km1, 1.0 / np.maximum(k, 1.0))
-    cost = np.where(br, TREE_COST * o * km1, o * km1)
     seen = split if min_samples <= 0.0 else split & (delta_effective_samples(acc, radius) >= min_samples)
     dv = float(np.mean(np.where(seen, b * (1.0 - kept), 0.0)))
     dc = float(np.mean(np.where(split, cost, 0.0)))
     return dv, dc
+
+
+def _split_terms(o: np.ndarray, k: np.ndarray, branched: bool | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel (kept, cost) of a delta split k: the share of the light's
+    variance its paths leave (k - 1 branched: BRANCH_RESIDUAL / (k - 1); k
+    plain: 1 / k) and their extra cost in rays (TREE_COST o or o a path)."""
+    k = np.asarray(k, dtype=float)
+    km1 = np.maximum(k - 1.0, 1.0)
+    br = _branch_where(branched, k.shape)
+    kept = np.where(br, BRANCH_RESIDUAL / km1, 1.0 / np.maximum(k, 1.0))
+    return kept, np.where(br, TREE_COST * o * km1, o * km1)
 
 
 def learn_delta_split(acc: CostAccumulator, q: np.ndarray, radius: int = 3, objective: str = "relmse",
@@ -764,10 +772,11 @@ class DeltaSplitRefiner:
     branch choices, and the render's light in place of the training's part
     of mean(wV)) the training's split (`base`) with every pixel whose camera
     paths saw delta scattering ("glass") split at least twice, and runs the
-    better one. With one training's maps held fixed, the glass split beat
-    the learned one 1.5-2x in efficiency on double_slabs and 1.7x on the
-    slab, and cost the sphere 0.8x, whose one image the training saw
-    (docs/results.md, forty-third session). Re-solving Eq. 3 per pixel with
+    better one. With trainings' maps held fixed, the glass split beat the
+    learned one 1.0-2x in efficiency on double_slabs (by training seed) and
+    1.7x on the slab, and cost the sphere 0.8x, whose one image the training
+    saw; in renders the pool 1.6x lower at 2 s, the slab 1.2x, the rest
+    level (docs/results.md, forty-third session). Re-solving Eq. 3 per pixel with
     the render's samples pooled in was level at 1-2 s and lost on the
     sphere and ring at 5 s (more split pixels for ~10 % fewer spp). The
     image stays unbiased: each pass's counts are fixed before it, and any
@@ -801,10 +810,7 @@ class DeltaSplitRefiner:
         pixel of that light (one plain path's), which also replaces the
         training's part of mean(wV) that is this light's."""
         split = k > 1.0
-        km1 = np.maximum(k - 1.0, 1.0)
-        br = self.branched & ~self.plain
-        kept = np.where(br, BRANCH_RESIDUAL / km1, 1.0 / np.maximum(k, 1.0))
-        cost = np.where(br, TREE_COST * self.o * km1, self.o * km1)
+        kept, cost = _split_terms(self.o, k, self.branched & ~self.plain)
         dv = float(np.mean(np.where(split, wb * (1.0 - kept), 0.0)))
         dc = float(np.mean(np.where(split, cost, 0.0)))
         v = max(self.v_mean - self.v_delta, 0.0) + float(np.mean(wb))
