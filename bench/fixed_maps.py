@@ -106,6 +106,126 @@ def traces_of(name: str) -> int:
     return int(next((x for x in m.groups()[1:] if x is not None), 0)) if m else 0
 
 
+def spied_training(sc, params: dict, seconds: float, seed: int) -> tuple:
+    """`mpg.render(sc, mpg with params, time=seconds, seed=seed)` with its
+    final render call's arguments and the training's records kept: (the
+    render, its wall seconds, seen) where seen holds "kw" and "integrator"
+    (the final render call's keyword arguments and integrator, maps and
+    guide included), "acc" (the training's CostAccumulator), "refiner"
+    (the pixel split's (kd, options)) and "delta_refiner" (the delta split's
+    held-out check, a DeltaSplitRefiner), each where the render made one."""
+    import mpg
+    import mpg.guiding  # noqa: F401  (its module, below)
+    from mpg import chain_rates
+    render_mod = sys.modules["mpg.render"]
+    guiding = sys.modules["mpg.guiding"]
+    seen: dict = {}
+    real_render = render_mod.render
+    real_add = chain_rates.CostAccumulator.add
+    real_refiner, real_delta = guiding.PixelSplitRefiner, guiding.DeltaSplitRefiner
+
+    def spy_render(scene, integrator=None, **kw):
+        if kw.get("chain_rate_map") is not None and "kw" not in seen:
+            seen["kw"], seen["integrator"] = dict(kw), integrator
+        return real_render(scene, integrator=integrator, **kw)
+
+    def spy_add(acc, result, spp, q):
+        seen["acc"] = acc
+        return real_add(acc, result, spp, q)
+
+    class SpyRefiner(real_refiner):   # (the pixel split's arguments, to build it again per variant)
+        def __init__(self, acc, q, kd, **kw):
+            seen["refiner"] = (kd, kw)
+            super().__init__(acc, q, kd, **kw)
+
+    class SpyDelta(real_delta):
+        def __init__(self, *a, **kw):
+            super().__init__(*a, **kw)
+            seen["delta_refiner"] = self
+
+    render_mod.render = spy_render   # (guiding.render_mpg imports it at call time)
+    chain_rates.CostAccumulator.add = spy_add
+    guiding.PixelSplitRefiner, guiding.DeltaSplitRefiner = SpyRefiner, SpyDelta
+    try:
+        t0 = time.perf_counter()
+        trained = mpg.render(sc, dict(type="mpg", **params), time=seconds, seed=seed, progress=False)
+        return trained, time.perf_counter() - t0, seen
+    finally:
+        render_mod.render = real_render
+        chain_rates.CostAccumulator.add = real_add
+        guiding.PixelSplitRefiner, guiding.DeltaSplitRefiner = real_refiner, real_delta
+
+
+def render_interleaved(sc, integrator: dict, calls: dict[str, dict], seeds: int, tool: str,
+                       refiners: dict | None = None) -> tuple[dict, dict]:
+    """Each variant's render call (calls[v]: mpg.render.render's keyword
+    arguments) on seeds 1000 + i, the variants interleaved per seed with the
+    order rotated, so a drift of the machine's speed falls on all alike.
+    refiners[v]: a function that makes a fresh pixel_split_refine per render.
+    Returns ({v: [rgb arrays]}, {v: [seconds]})."""
+    real_render = sys.modules["mpg.render"].render
+    names = list(calls)
+    imgs: dict[str, list[np.ndarray]] = {v: [] for v in names}
+    secs: dict[str, list[float]] = {v: [] for v in names}
+    for i in range(seeds):
+        for j in range(len(names)):
+            v = names[(i + j) % len(names)]
+            call = dict(calls[v], seed=1000 + i)
+            if refiners and v in refiners:
+                call["pixel_split_refine"] = refiners[v]()
+            t0 = time.perf_counter()
+            img = real_render(sc, integrator=integrator if "integrator" not in call else call.pop("integrator"),
+                              **call)
+            secs[v].append(time.perf_counter() - t0)
+            imgs[v].append(np.asarray(img.rgb, dtype=np.float64))
+        print(f"{tool}: seed {i + 1}/{seeds}", file=sys.stderr, flush=True)
+    return imgs, secs
+
+
+def variance_summary(imgs: list[np.ndarray], secs: list[float], spp: int, weight: np.ndarray,
+                     groups: dict[str, np.ndarray]) -> dict:
+    """A variant's per-sample variance (spp times the seeds' sample variance
+    of a pixel's mean, mean over RGB), weighted and by group, its median
+    seconds and its efficiency (variance x seconds)."""
+    a = np.stack(imgs)
+    var = a.var(axis=0, ddof=1).mean(axis=2) * spp   # a sample's variance (a split one: k camera samples')
+    sec = statistics.median(secs)
+    npix = var.size
+    return {"seconds_median": sec, "seconds": list(secs),
+            "variance": float(var.mean()), "variance_weighted": float((weight * var).mean()),
+            "efficiency": float(var.mean()) * sec, "efficiency_weighted": float((weight * var).mean()) * sec,
+            "group_variance": {k: float(var[m].sum() / npix) for k, m in groups.items()},
+            "group_variance_weighted": {k: float((weight * var)[m].sum() / npix) for k, m in groups.items()}}
+
+
+def print_variants(variants: dict[str, dict], base_name: str) -> None:
+    """The variants' table: seconds, variance, efficiency and its gain over
+    base_name's, unweighted and weighted, and the variance by group."""
+    base = variants[base_name]
+    w = max([14] + [len(v) for v in variants])
+    print(f"{'variant':{w}s} {'s/render':>9s} {'variance':>9s} {'effic.':>8s} {'vs ' + base_name:>9s} "
+          f"{'weighted':>9s}  variance by group (weighted by group)")
+    for v, r in variants.items():
+        gains = base["efficiency"] / r["efficiency"] if r["efficiency"] > 0 else float("inf")
+        wgains = (base["efficiency_weighted"] / r["efficiency_weighted"] if r["efficiency_weighted"] > 0
+                  else float("inf"))
+        by = ", ".join(f"{k} {x:.4g} ({r['group_variance_weighted'][k]:.4g})" for k, x in r["group_variance"].items())
+        print(f"{v:{w}s} {r['seconds_median']:9.3f} {r['variance']:9.4g} {r['efficiency']:8.4g} {gains:8.2f}x "
+              f"{wgains:8.2f}x  {by}")
+
+
+def mpg_params(ap: argparse.ArgumentParser, text: str) -> dict:
+    """--params: a JSON object of mpg parameters without 'type' (else the
+    parser's usage error)."""
+    try:
+        params = json.loads(text)
+    except json.JSONDecodeError as e:
+        ap.error(f"--params is not JSON: {e}")
+    if not isinstance(params, dict) or "type" in params:
+        ap.error("--params must be a JSON object of mpg parameters without 'type'")
+    return params
+
+
 def main() -> int:
     import mpg
     import mpg.guiding  # noqa: F401  (its module, below)
@@ -136,12 +256,7 @@ def main() -> int:
     big = [v for v in args.variants if traces_of(v) > 64]
     if big:
         ap.error(f"{big[0]}: at most 64 guided traces a pixel")
-    try:
-        params = json.loads(args.params)
-    except json.JSONDecodeError as e:
-        ap.error(f"--params is not JSON: {e}")
-    if not isinstance(params, dict) or "type" in params:
-        ap.error("--params must be a JSON object of mpg parameters without 'type'")
+    params = mpg_params(ap, args.params)
     if params.get("handoff_all", 0) not in (0, "0"):   # (0.0 == 0; "0.0" is refused with the rest)
         ap.error("the training keeps its learned maps (handoff_all 0): the variants all<K> are handoff_all's")
     params["handoff_all"] = 0
@@ -152,51 +267,23 @@ def main() -> int:
         return 1
     sc = loaded[1]
 
-    # The training: the final render call's arguments and the training's records.
-    render_mod = sys.modules["mpg.render"]
-    guiding = sys.modules["mpg.guiding"]
-    seen: dict = {}
-    real_render = render_mod.render
-    real_add = chain_rates.CostAccumulator.add
-
-    def spy_render(scene, integrator=None, **kw):
-        if kw.get("chain_rate_map") is not None and "kw" not in seen:
-            seen["kw"], seen["integrator"] = dict(kw), integrator
-        return real_render(scene, integrator=integrator, **kw)
-
-    def spy_add(acc, result, spp, q):
-        seen["acc"] = acc
-        return real_add(acc, result, spp, q)
-
-    real_refiner = guiding.PixelSplitRefiner
-
-    class SpyRefiner(real_refiner):   # (the pixel split's arguments, to build it again per variant)
-        def __init__(self, acc, q, kd, **kw):
-            seen["refiner"] = (kd, kw)
-            super().__init__(acc, q, kd, **kw)
-
-    render_mod.render = spy_render   # (guiding.render_mpg imports it at call time)
-    chain_rates.CostAccumulator.add = spy_add
-    guiding.PixelSplitRefiner = SpyRefiner
     try:
-        t0 = time.perf_counter()
-        trained = mpg.render(sc, dict(type="mpg", **params), time=args.time, seed=0, progress=False)
-        seconds_training_render = time.perf_counter() - t0
+        trained, seconds_training_render, seen = spied_training(sc, params, args.time, 0)
     except mpg.RenderError as e:
         print(f"fixed_maps: {e}", file=sys.stderr)
         return 1
-    finally:
-        render_mod.render = real_render
-        chain_rates.CostAccumulator.add = real_add
-        guiding.PixelSplitRefiner = real_refiner
     if "kw" not in seen or "acc" not in seen:
         print("fixed_maps: the render learned no per-pixel maps (too short a training, or chain_rate "
               "given, or no chain work in the scene)", file=sys.stderr)
         return 1
+    real_refiner = sys.modules["mpg.guiding"].PixelSplitRefiner
     kw = dict(seen["kw"])
     online = kw.get("pixel_split_refine") is not None and "refiner" in seen and not args.no_online_split
     resolve_split = "refiner" in seen   # (a learned pixel split: solved again from each variant's rates)
-    kw.update(spp=args.spp, time=None, pixel_split_refine=None, progress=False, seconds_per_spp=None)
+    # (the delta split's held-out check off: it would choose between two delta
+    # splits per render, and the maps are held fixed)
+    kw.update(spp=args.spp, time=None, pixel_split_refine=None, delta_split_refine=None, progress=False,
+              seconds_per_spp=None)
     q = np.asarray(kw["chain_rate_map"], dtype=np.float32)
     g = kw.get("guided_trace_map")
     g = np.zeros_like(q) if g is None else np.asarray(g, dtype=np.float32)
@@ -225,25 +312,10 @@ def main() -> int:
                 refine_args[v] = (qv, kd, skw)
             smap_v, _ = real_refiner(acc, qv, kd, **skw).solve()
             m["pixel_split_map"] = smap_v if np.any(smap_v > 1) else None
-    imgs: dict[str, list[np.ndarray]] = {v: [] for v in args.variants}
-    secs: dict[str, list[float]] = {v: [] for v in args.variants}
-    nv = len(args.variants)
-    for i in range(args.seeds):
-        for j in range(nv):
-            v = args.variants[(i + j) % nv]
-            call = dict(kw)
-            call.update(maps[v])
-            call["seed"] = 1000 + i
-            if v in refine_args:
-                qv, kd, skw = refine_args[v]
-                call["pixel_split_refine"] = real_refiner(acc, qv, kd, **skw).update
-            t0 = time.perf_counter()
-            img = real_render(sc, integrator=seen["integrator"], **call)
-            secs[v].append(time.perf_counter() - t0)
-            imgs[v].append(np.asarray(img.rgb, dtype=np.float64))
-        print(f"fixed_maps: seed {i + 1}/{args.seeds}", file=sys.stderr, flush=True)
+    calls = {v: dict(kw, **maps[v]) for v in args.variants}
+    refiners = {v: (lambda a=a: real_refiner(acc, a[0], a[1], **a[2]).update) for v, a in refine_args.items()}
+    imgs, secs = render_interleaved(sc, seen["integrator"], calls, args.seeds, "fixed_maps", refiners)
 
-    npix = q.size
     result = {"command": shlex.join(["python", "bench/fixed_maps.py"] + sys.argv[1:]), "scene": args.scene,
               "params": params, "time": args.time, "spp": args.spp, "seeds": args.seeds,
               "training_spp": int(trained.stats.get("spp_training", 0)),
@@ -251,32 +323,14 @@ def main() -> int:
               "online_pixel_split": online,
               "group_fraction": {k: float(m.mean()) for k, m in groups.items()}, "variants": {}}
     for v in args.variants:
-        a = np.stack(imgs[v])
-        var = a.var(axis=0, ddof=1).mean(axis=2) * args.spp   # a sample's variance (a split one: k camera samples')
-        sec = statistics.median(secs[v])
-        result["variants"][v] = {
-            "seconds_median": sec, "seconds": secs[v],
-            "variance": float(var.mean()), "variance_weighted": float((weight * var).mean()),
-            "efficiency": float(var.mean()) * sec, "efficiency_weighted": float((weight * var).mean()) * sec,
-            "group_variance": {k: float(var[m].sum() / npix) for k, m in groups.items()},
-            "group_variance_weighted": {k: float((weight * var)[m].sum() / npix) for k, m in groups.items()},
-        }
+        result["variants"][v] = variance_summary(imgs[v], secs[v], args.spp, weight, groups)
     out = pathlib.Path(args.out) if args.out else ROOT / "bench" / "results" / f"fixed_maps-{pathlib.Path(args.scene).stem}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2))
 
-    base = result["variants"][args.variants[0]]
     print(f"{args.scene}: training {result['training_spp']} spp; pixels: " +
           ", ".join(f"{k} {f:.1%}" for k, f in result["group_fraction"].items()))
-    print(f"{'variant':14s} {'s/render':>9s} {'variance':>9s} {'effic.':>8s} {'vs ' + args.variants[0]:>9s} "
-          f"{'weighted':>9s}  variance by group (weighted by group)")
-    for v, r in result["variants"].items():
-        gains = base["efficiency"] / r["efficiency"] if r["efficiency"] > 0 else float("inf")
-        wgains = (base["efficiency_weighted"] / r["efficiency_weighted"] if r["efficiency_weighted"] > 0
-                  else float("inf"))
-        by = ", ".join(f"{k} {x:.4g} ({r['group_variance_weighted'][k]:.4g})" for k, x in r["group_variance"].items())
-        print(f"{v:14s} {r['seconds_median']:9.3f} {r['variance']:9.4g} {r['efficiency']:8.4g} {gains:8.2f}x "
-              f"{wgains:8.2f}x  {by}")
+    print_variants(result["variants"], args.variants[0])
     print(f"wrote {out}")
     return 0
 
