@@ -59,6 +59,7 @@ def main() -> int:
     ap.add_argument("--integrator", default="mpg")
     ap.add_argument("--time", type=float, default=1.0)
     ap.add_argument("--seeds", type=int, default=16)
+    ap.add_argument("--first-seed", type=int, default=0, help="the seeds are FIRST-SEED, FIRST-SEED + 1, ...")
     add_param_option(ap)
     ap.add_argument("--variants", nargs="+", default=["{}"], metavar="JSON")
     ap.add_argument("--baseline", metavar="REV",
@@ -85,7 +86,8 @@ def main() -> int:
         exe = pathlib.Path(found)
     command = shlex.join(["python", "bench/fresh_process.py"] + sys.argv[1:])
     key = hashlib.sha1(json.dumps([args.scene, params, args.integrator, args.time, args.seeds,
-                                   variants, args.baseline]).encode()).hexdigest()
+                                   variants, args.baseline] + ([args.first_seed] if args.first_seed else []))
+                       .encode()).hexdigest()
     # (variant, code): code None the working tree's, else a folder holding REV's mpg
     base_dir = tempfile.TemporaryDirectory() if args.baseline else None
     runs_of = [(v, None) for v in variants]
@@ -100,7 +102,7 @@ def main() -> int:
     runs: list[list[dict]] = [[] for _ in runs_of]
     images: list[list[np.ndarray]] = [[] for _ in runs_of]
     with tempfile.TemporaryDirectory() as tmp:
-        for seed in range(args.seeds):
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
             n = len(runs_of)
             for i in [(seed + j) % n for j in range(n)]:
                 variant, code = runs_of[i]

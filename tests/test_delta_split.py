@@ -511,3 +511,40 @@ def test_mpg_checks_its_delta_split_and_stays_unbiased(sphere, sphere32_path_ref
     assert image_zmax(glass, sphere32_path_ref, REGIONS) < 5
     with pytest.raises(mpg.RenderError, match="delta_split_online"):
         mpg.render(sphere, {"type": "mpg", "delta_split_online": "maybe"}, spp=4, progress=False)
+
+
+def test_render_checks_the_delta_split_from_2_spp_and_the_pixel_split_from_4(sphere, monkeypatch):
+    """render(delta_split_refine=g, pixel_split_refine=f) on a 16-spp render
+    (passes of 1, 1, 2, 4, 8 spp): g before the passes at 2, 4 and 8 spp
+    (DELTA_REFINE_FIRST, then doubling) with the sums of each sample's own
+    delta light so far, f at 4 and 8 (REFINE_FIRST), g before f where both
+    are due; each point a new epoch of the Sobol shifts; the passes run with
+    the maps g returns."""
+    import sys
+    render_mod = sys.modules["mpg.render"]   # (the module; mpg.render is its function)
+    assert render_mod.DELTA_REFINE_FIRST == 2 and render_mod.REFINE_FIRST == 4
+    order, jobs = [], []
+    real = _core.RenderJob
+
+    def job(*a, **kw):
+        jobs.append((kw.get("sequence_epoch", 0), kw.get("sample_offset", 0),
+                     None if kw.get("delta_split_map") is None else float(kw["delta_split_map"][0, 0])))
+        return real(*a, **kw)
+
+    def grefine(ds, ds2, n):
+        order.append(("delta", n))
+        assert ds.shape == (RES, RES, 3) and np.all(ds2 >= 0)
+        return np.full((RES, RES), 1.0 + len(order), np.float32), None, {"delta_split_online_updates": n}
+
+    def frefine(ks, ks2, kn, n):
+        order.append(("pixel", n))
+        return None, {}
+
+    monkeypatch.setattr(_core, "RenderJob", job)
+    img = mpg.render(sphere, "path", spp=16, seed=3, progress=False,
+                     delta_split_refine=grefine, pixel_split_refine=frefine)
+    monkeypatch.setattr(_core, "RenderJob", real)
+    assert order == [("delta", 2), ("delta", 4), ("pixel", 4), ("delta", 8), ("pixel", 8)]
+    # epochs: a new one at 2, 4 and 8 spp; the maps g returned (2, then 3, then 5)
+    assert jobs == [(0, 0, None), (0, 1, None), (1, 0, 2.0), (2, 0, 3.0), (3, 0, 5.0)]
+    assert img.stats["spp"] == 16

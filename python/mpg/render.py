@@ -254,6 +254,12 @@ class Progress:
 
 # pixel_split_refine's first call: before the first pass after this many spp
 REFINE_FIRST = 4
+# delta_split_refine's first call (then at twice the spp of its last call):
+# the held-out check weighs two whole-image sums, which 2 spp already give,
+# and every sample before it runs the training's split, which a 2 s
+# training misses most of on double_slabs (docs/results.md, forty-fourth
+# session)
+DELTA_REFINE_FIRST = 2
 
 
 def pass_schedule(first: int = 1, cap: int = 32):
@@ -360,7 +366,9 @@ def render(
         (RenderJob's sequence_epoch: fresh shifts, sample_offset from 0), so no later
         film position is a function of a shift the earlier samples depended on.
     delta_split_refine: a callable (ds, ds2, n) -> (delta split map, delta
-        branch map, info) called at the same points, before pixel_split_refine;
+        branch map, info) called before a pass once n reaches DELTA_REFINE_FIRST
+        and then twice the n of its last call, before pixel_split_refine where
+        both are due (each call starts a new epoch too);
         ds / ds2 the per-pixel sums and squares of the light each sample's own
         path saw through delta scattering only (RenderJob's record_delta), over
         the n spp so far. mpg's chain_rates.DeltaSplitRefiner: the maps it returns
@@ -432,6 +440,7 @@ def render(
     seconds_dropped = 0.0
     seconds_passes = 0.0   # (the passes' own wall time, the dropped one's too)
     refine_at, refine_info = REFINE_FIRST, {}
+    drefine_at = DELTA_REFINE_FIRST
     epoch, epoch_start = 0, 0   # (RenderJob's sequence_epoch and the spp when it began)
     if pixel_split_refine is not None:
         ks, ks2, kn = np.zeros((h, w, 3)), np.zeros((h, w, 3)), np.zeros((h, w))
@@ -440,7 +449,6 @@ def render(
         ds_acc, ds_acc2 = np.zeros((h, w, 3)), np.zeros((h, w, 3))
         # (the same for the delta split: its maps and stats)
         pending_dinfo, drefine_info, ran_delta = {}, {}, (delta_split_map, delta_branch_map)
-    refining = pixel_split_refine is not None or delta_split_refine is not None
     # Ctrl-C (and SIGTERM where a caller such as mpg-render maps it to an
     # interrupt) sets a flag the loop checks, instead of raising wherever it
     # lands: a KeyboardInterrupt between two passes (creating a job, adding a
@@ -457,14 +465,17 @@ def render(
             if stop.is_set():
                 interrupted = True
                 break
-            if refining and done >= refine_at:
+            split_due = pixel_split_refine is not None and done >= refine_at
+            delta_due = delta_split_refine is not None and done >= drefine_at
+            if split_due or delta_due:
                 # (before the pass is sized: its time comes off what is left)
-                if delta_split_refine is not None:
+                if delta_due:
                     # (first: the pixel split's model counts the delta split's cost)
                     delta_split_map, delta_branch_map, pending_dinfo = delta_split_refine(ds_acc, ds_acc2, done)
-                if pixel_split_refine is not None:
+                    drefine_at = 2 * done
+                if split_due:
                     pixel_split_map, pending_info = pixel_split_refine(ks, ks2, kn, done)
-                refine_at = 2 * done
+                    refine_at = 2 * done
                 # a new epoch of the Sobol sequences: fresh shifts, counted from 0
                 epoch, epoch_start = epoch + 1, done
             k = next(sched)
