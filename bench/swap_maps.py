@@ -22,6 +22,8 @@ Variants:
                    or glass: the short training's delta split with every pixel
                    whose training paths saw delta scattering split at least
                    twice (the held-out check's other choice, its branch map),
+                   or glassplain: the glass split with plain extra paths (not
+                   trees) in the pixels the training did not split,
                    or grow<R>: the same for the glass pixels within R pixels
                    (a (2R+1)^2 window) of a pixel the short training split
                    (measured on double_slabs, never better than glass:
@@ -49,7 +51,7 @@ import numpy as np
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PARTS = {"guide": ("guide",), "rates": ("chain_rate_map",), "traces": ("guided_trace_map",),
          "deep": ("deep_rate_map",), "pixel_split": ("pixel_split_map",),
-         "delta_split": ("delta_split_map", "delta_branch_map"), "glass": ()}
+         "delta_split": ("delta_split_map", "delta_branch_map"), "glass": (), "glassplain": ()}
 HELD = dict(pixel_split_refine=None, delta_split_refine=None, progress=False, seconds_per_spp=None, time=None)
 
 
@@ -61,16 +63,17 @@ def parse_variant(name: str) -> tuple[str, list[str]]:
     bad = [p for p in parts if p not in PARTS and not re.fullmatch(r"grow[1-9]\d*", p)]
     if bad:
         raise ValueError(f"{name!r}: unknown part {bad[0]!r} (one of {', '.join(PARTS)})")
-    delta = [p for p in parts if p in ("glass", "delta_split") or p.startswith("grow")]
+    delta = [p for p in parts if p in ("glass", "glassplain", "delta_split") or p.startswith("grow")]
     if len(set(parts)) != len(parts) or len(delta) > 1:
         raise ValueError(f"{name!r}: a part named twice, or two delta splits (glass, grow<R>, delta_split)")
     return head, parts
 
 
-def glass_maps(seen: dict, grow: int = 0) -> dict:
+def glass_maps(seen: dict, grow: int = 0, plain_new: bool = False) -> dict:
     """The held-out check's other delta split (every glass pixel split at
     least twice) of a training, as render call arguments; grow > 0: only the
-    glass pixels within `grow` pixels of one the training split."""
+    glass pixels within `grow` pixels of one the training split; plain_new:
+    the pixels the training did not split get plain extra paths, not trees."""
     d = seen.get("delta_refiner")
     if d is None:
         raise ValueError("the training made no held-out check (no learned delta split, or "
@@ -81,7 +84,7 @@ def glass_maps(seen: dict, grow: int = 0) -> dict:
         near = _box_blur((d.base > 1.0).astype(float), grow, total=True) >= 0.5
         k = np.where(near, k, d.base).astype(np.float32)
     split = k > 1.0
-    b = np.where(split & d.plain, 0.0, 1.0).astype(np.float32)
+    b = np.where(split & (d.plain | (plain_new & (d.base <= 1.0))), 0.0, 1.0).astype(np.float32)
     branched = bool(seen["integrator"].get("delta_branch", 0) > 0)
     return {"delta_split_map": k.astype(np.float32) if np.any(split) else None,
             "delta_branch_map": (b if branched and np.any(split) and not np.all(b > 0) else None)}
@@ -94,8 +97,8 @@ def variant_call(name: str, short: dict, long: dict) -> dict:
     src = long if head == "long" else short
     call = dict(src["kw"], **HELD, integrator=dict(src["integrator"]))
     for p in parts:
-        if p == "glass" or p.startswith("grow"):
-            call.update(glass_maps(short, 0 if p == "glass" else int(p[4:])))
+        if p in ("glass", "glassplain") or p.startswith("grow"):
+            call.update(glass_maps(short, int(p[4:]) if p.startswith("grow") else 0, p == "glassplain"))
         elif p == "guide":
             call["integrator"]["guide"] = long["integrator"]["guide"]
         else:

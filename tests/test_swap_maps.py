@@ -75,8 +75,14 @@ def test_a_variant_swaps_the_parts_it_names_and_nothing_else(swap_maps):
     want[:2, :2] = np.maximum(want[:2, :2], 2.0)   # (glass rows 0-1, columns 0-1 near (0, 0))
     assert np.array_equal(g1, want)
     assert np.array_equal(swap_maps.variant_call("short+grow9", short, long)["delta_split_map"], d.glass_map)
+    # glassplain: the glass split's new pixels with plain paths, the training's own as the check has them
+    gp = swap_maps.variant_call("short+glassplain", short, long)
+    assert np.array_equal(gp["delta_split_map"], d.glass_map)
+    new = (d.glass_map > 1) & (d.base <= 1)
+    assert np.all(gp["delta_branch_map"][new] == 0) and gp["delta_branch_map"][0, 0] == 0   # ((0, 0): plain in d)
+    assert np.all(gp["delta_branch_map"][~new & ~d.plain] == 1)
     for bad in ["long+guide", "short+nothing", "short+guide+guide", "short+glass+delta_split", "medium",
-                "short+grow0", "short+grow2+glass"]:
+                "short+grow0", "short+grow2+glass", "short+glassplain+glass"]:
         with pytest.raises(ValueError):
             swap_maps.parse_variant(bad)
     with pytest.raises(ValueError):   # (a training without the check has no glass split)
