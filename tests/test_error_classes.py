@@ -17,6 +17,7 @@ import pytest
 
 import mpg
 from mpg.render import CLASS_NAMES
+from bench_util import bench_module
 from stats_util import run_pass
 
 RES = 32
@@ -196,11 +197,8 @@ def test_seed_summary_groups_anticorrelated_classes():
     off in another) each class's seeds' variance is large and their group's
     is 0; a class's contribution (var(all) - var(all - class)) then counts
     its covariance, and the groups name every class once."""
-    sys.path.insert(0, str(ROOT / "bench"))
-    try:
-        from error_classes import GROUPS, seed_summary
-    finally:
-        sys.path.remove(str(ROOT / "bench"))
+    ec = bench_module("error_classes")
+    GROUPS, seed_summary = ec.GROUPS, ec.seed_summary
     assert sorted(c for g in GROUPS.values() for c in g) == sorted(CLASS_NAMES)
     rng = np.random.default_rng(3)
     s, h, w = 400, 4, 4
@@ -226,11 +224,8 @@ def test_seed_summary_groups_anticorrelated_classes():
 def test_split_by_mask_adds_up_to_the_groups():
     """error_classes.split_by_mask: the groups' seeds' variance in the
     masked pixels and in the rest add up to seed_summary's image means."""
-    sys.path.insert(0, str(ROOT / "bench"))
-    try:
-        from error_classes import GROUPS, seed_summary, split_by_mask
-    finally:
-        sys.path.remove(str(ROOT / "bench"))
+    ec = bench_module("error_classes")
+    GROUPS, seed_summary, split_by_mask = ec.GROUPS, ec.seed_summary, ec.split_by_mask
     rng = np.random.default_rng(4)
     means = rng.gamma(0.5, size=(5, 6, 7, len(CLASS_NAMES)))
     mask = rng.random((6, 7)) < 0.3

@@ -12,17 +12,14 @@ import sys
 import numpy as np
 import pytest
 
+from bench_util import bench_module
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def fixed_maps():
-    sys.path.insert(0, str(ROOT / "bench"))
-    try:
-        import fixed_maps as fm
-        yield fm
-    finally:
-        sys.path.remove(str(ROOT / "bench"))
+    return bench_module("fixed_maps")
 
 
 def test_the_variants_change_only_the_maps_they_name(fixed_maps):

@@ -13,17 +13,14 @@ import sys
 import numpy as np
 import pytest
 
+from bench_util import bench_module
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def swap_maps():
-    sys.path.insert(0, str(ROOT / "bench"))
-    try:
-        import swap_maps as sm
-        yield sm
-    finally:
-        sys.path.remove(str(ROOT / "bench"))
+    return bench_module("swap_maps")
 
 
 class _Refiner:   # (the held-out check's attributes glass_maps reads)
