@@ -519,7 +519,8 @@ def test_render_checks_the_delta_split_from_2_spp_and_the_pixel_split_from_4(sph
     (DELTA_REFINE_FIRST, then doubling) with the sums of each sample's own
     delta light so far, f at 4 and 8 (REFINE_FIRST), g before f where both
     are due; each point a new epoch of the Sobol shifts; the passes run with
-    the maps g returns."""
+    the maps g returns. Where the two schedules part, g also runs wherever f
+    does and not apart from it."""
     import sys
     render_mod = sys.modules["mpg.render"]   # (the module; mpg.render is its function)
     assert render_mod.DELTA_REFINE_FIRST == 2 and render_mod.REFINE_FIRST == 4
@@ -548,3 +549,14 @@ def test_render_checks_the_delta_split_from_2_spp_and_the_pixel_split_from_4(sph
     # epochs: a new one at 2, 4 and 8 spp; the maps g returned (2, then 3, then 5)
     assert jobs == [(0, 0, None), (0, 1, None), (1, 0, 2.0), (2, 0, 3.0), (3, 0, 5.0)]
     assert img.stats["spp"] == 16
+    # passes of 1, 2, 2, 2, 2, 2 spp: g at 3 spp (its next at 6), f at 5 and g
+    # with it (its next then at 10, not at 7 apart from f): one epoch more
+    # than f alone
+    order.clear()
+    jobs.clear()
+    monkeypatch.setattr(render_mod, "pass_schedule", lambda first=1, cap=32: iter([1] + [2] * 8))
+    monkeypatch.setattr(_core, "RenderJob", job)
+    mpg.render(sphere, "path", spp=11, seed=3, progress=False, delta_split_refine=grefine, pixel_split_refine=frefine)
+    monkeypatch.setattr(_core, "RenderJob", real)
+    assert order == [("delta", 3), ("delta", 5), ("pixel", 5)]
+    assert [j[0] for j in jobs] == [0, 0, 1, 2, 2, 2]

@@ -254,7 +254,8 @@ class Progress:
 
 # pixel_split_refine's first call: before the first pass after this many spp
 REFINE_FIRST = 4
-# delta_split_refine's first call (then at twice the spp of its last call):
+# delta_split_refine's first call (then at twice the spp of its last call
+# and with every pixel_split_refine call):
 # the held-out check weighs two whole-image sums, which 2 spp already give,
 # and every sample before it runs the training's split, which a 2 s
 # training misses most of on double_slabs (docs/results.md, forty-fourth
@@ -366,9 +367,9 @@ def render(
         (RenderJob's sequence_epoch: fresh shifts, sample_offset from 0), so no later
         film position is a function of a shift the earlier samples depended on.
     delta_split_refine: a callable (ds, ds2, n) -> (delta split map, delta
-        branch map, info) called before a pass once n reaches DELTA_REFINE_FIRST
-        and then twice the n of its last call, before pixel_split_refine where
-        both are due (each call starts a new epoch too);
+        branch map, info) called before a pass once n reaches DELTA_REFINE_FIRST,
+        then at twice the n of its last call and wherever pixel_split_refine is
+        called (before it; each call starts a new epoch too);
         ds / ds2 the per-pixel sums and squares of the light each sample's own
         path saw through delta scattering only (RenderJob's record_delta), over
         the n spp so far. mpg's chain_rates.DeltaSplitRefiner: the maps it returns
@@ -466,7 +467,10 @@ def render(
                 interrupted = True
                 break
             split_due = pixel_split_refine is not None and done >= refine_at
-            delta_due = delta_split_refine is not None and done >= drefine_at
+            # (and with every pixel split refinement: one schedule after the
+            # first check, so the epochs of the Sobol shifts, which each point
+            # starts, are no more than the pixel split's and one)
+            delta_due = delta_split_refine is not None and (done >= drefine_at or split_due)
             if split_due or delta_due:
                 # (before the pass is sized: its time comes off what is left)
                 if delta_due:
