@@ -83,11 +83,10 @@ def glass_maps(seen: dict, grow: int = 0, plain_new: bool = False) -> dict:
         from mpg.chain_rates import _box_blur
         near = _box_blur((d.base > 1.0).astype(float), grow, total=True) >= 0.5
         k = np.where(near, k, d.base).astype(np.float32)
-    split = k > 1.0
-    b = np.where(split & (d.plain | (plain_new & (d.base <= 1.0))), 0.0, 1.0).astype(np.float32)
-    branched = bool(seen["integrator"].get("delta_branch", 0) > 0)
-    return {"delta_split_map": k.astype(np.float32) if np.any(split) else None,
-            "delta_branch_map": (b if branched and np.any(split) and not np.all(b > 0) else None)}
+    # (plain extra paths only where the integrator branches: the check's own rule)
+    plain = d.plain | (plain_new & d.branched & (d.base <= 1.0))
+    kmap, bmap = d.maps(np.asarray(k, dtype=np.float32), plain)
+    return {"delta_split_map": kmap, "delta_branch_map": bmap}
 
 
 def variant_call(name: str, short: dict, long: dict) -> dict:

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from bench_util import bench_module
+from mpg.chain_rates import DeltaSplitRefiner
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -23,8 +24,9 @@ def swap_maps():
     return bench_module("swap_maps")
 
 
-class _Refiner:   # (the held-out check's attributes glass_maps reads)
+class _Refiner(DeltaSplitRefiner):   # (the held-out check's attributes glass_maps reads, its maps())
     def __init__(self, shape):
+        self.branched = True
         self.glass = np.zeros(shape, dtype=bool)
         self.glass[:2] = True
         self.glass_map = np.where(self.glass, 2.0, 1.0).astype(np.float32)

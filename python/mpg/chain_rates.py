@@ -829,12 +829,22 @@ class DeltaSplitRefiner:
         glass = bool(np.any(self.glass)) and fg < fb
         k = self.glass_map if glass else self.base
         split = k > 1.0
-        b = np.where(split & self.plain, 0.0, 1.0).astype(np.float32)
         info = {"delta_split_online_updates": self.updates, "delta_split_online_glass": int(glass),
                 "delta_split_online_glass_gain": fb / fg if fg > 0.0 else 1.0,
                 "delta_split_online_fraction": float(np.mean(split)),
                 "delta_split_online_mean": float(np.mean(k[split])) if np.any(split) else 1.0}
-        return ((k if np.any(split) else None), (b if np.any(split) and not np.all(b > 0) else None), info)
+        return (*self.maps(k), info)
+
+    def maps(self, k: np.ndarray, plain: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The render's (delta split map, delta branch map) of counts k: None
+        for no split, and for a branch map where every split pixel branches;
+        plain (default: the training's records' choice) the pixels whose extra
+        paths are plain."""
+        split = k > 1.0
+        if not np.any(split):
+            return None, None
+        b = np.where(split & (self.plain if plain is None else plain), 0.0, 1.0).astype(np.float32)
+        return k, (None if np.all(b > 0) else b)
 
 
 # learn_jointly: at most this many rounds of the delta split and the rates.

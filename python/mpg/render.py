@@ -255,11 +255,11 @@ class Progress:
 # pixel_split_refine's first call: before the first pass after this many spp
 REFINE_FIRST = 4
 # delta_split_refine's first call (then at twice the spp of its last call
-# and with every pixel_split_refine call):
-# the held-out check weighs two whole-image sums, which 2 spp already give,
-# and every sample before it runs the training's split, which a 2 s
-# training misses most of on double_slabs (docs/results.md, forty-fourth
-# session)
+# and with every pixel_split_refine call): the held-out check weighs two
+# whole-image sums, which 2 spp already give, and every sample before it
+# runs the training's split. From 2 spp rather than 4: the pool 1.24x
+# lower at 2 s, chain_length_4 1.07-1.12x higher at 1 s (docs/results.md,
+# forty-fourth session)
 DELTA_REFINE_FIRST = 2
 
 
@@ -446,10 +446,11 @@ def render(
     if pixel_split_refine is not None:
         ks, ks2, kn = np.zeros((h, w, 3)), np.zeros((h, w, 3)), np.zeros((h, w))
         pending_info, ran_map = {}, pixel_split_map   # (the newest solve's stats; the map a counted pass ran with)
+    drefine_info = {}   # (the delta split check's stats of the map the last counted pass ran with)
     if delta_split_refine is not None:
         ds_acc, ds_acc2 = np.zeros((h, w, 3)), np.zeros((h, w, 3))
         # (the same for the delta split: its maps and stats)
-        pending_dinfo, drefine_info, ran_delta = {}, {}, (delta_split_map, delta_branch_map)
+        pending_dinfo, ran_delta = {}, (delta_split_map, delta_branch_map)
     # Ctrl-C (and SIGTERM where a caller such as mpg-render maps it to an
     # interrupt) sets a flag the loop checks, instead of raising wherever it
     # lands: a KeyboardInterrupt between two passes (creating a job, adding a
@@ -625,7 +626,7 @@ def render(
         **{k: (float(v) if k.startswith(("max_chain_", "chain_m2", "pt_shared_m2", "limit_")) else int(v))
            for k, v in stats.items()},
         **refine_info,
-        **(drefine_info if delta_split_refine is not None else {}),
+        **drefine_info,
     }
     # (class sums None without record_classes, or when no pass finished)
     img = Image(rgb=mean.astype(np.float32), variance=var.astype(np.float32), spp=done,
