@@ -16,6 +16,7 @@ import shutil
 import numpy as np
 import pytest
 
+from bench_util import bench_module
 from mpg.bench import cli, curves, reference, report, runners
 from mpg.bench.scenes import BenchError
 
@@ -285,13 +286,7 @@ def test_fresh_process_paired_ratio():
     both rendered, an interval around it that holds it, a degenerate
     interval where every seed's ratio is the same, and NaN (not an error)
     with fewer than two common seeds."""
-    import pathlib
-    import sys
-    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "bench"))
-    try:
-        from fresh_process import paired_ratio
-    finally:
-        sys.path.pop(0)
+    paired_ratio = bench_module("fresh_process").paired_ratio
     rng = np.random.default_rng(3)
     m = rng.lognormal(0.0, 1.0, 40)
     first = [{"seed": i, "mse": float(2.0 * v)} for i, v in enumerate(m)]
