@@ -12,6 +12,9 @@ swap reproducible (docs/results.md: double_slabs' 2 s training against its
 
 Variants:
   short, long      one training's guide and maps as learned
+  path             the path tracer at the same spp and sampler (the peer
+                   whose per-sample variance and seconds the maps' are
+                   measured against; no maps)
   short+PART[+..]  the short training's, with PART from the long training:
                      guide        the guided state (STree, chain distributions)
                      rates        chain_rate_map (the chain estimator's rates)
@@ -58,8 +61,8 @@ HELD = dict(pixel_split_refine=None, delta_split_refine=None, progress=False, se
 def parse_variant(name: str) -> tuple[str, list[str]]:
     """(the base training, the parts swapped in) of a variant's name."""
     head, *parts = name.split("+")
-    if head not in ("short", "long") or (head == "long" and parts):
-        raise ValueError(f"{name!r}: a variant is short, long or short+PART[+PART...]")
+    if head not in ("short", "long", "path") or (head in ("long", "path") and parts):
+        raise ValueError(f"{name!r}: a variant is short, long, path or short+PART[+PART...]")
     bad = [p for p in parts if p not in PARTS and not re.fullmatch(r"grow[1-9]\d*", p)]
     if bad:
         raise ValueError(f"{name!r}: unknown part {bad[0]!r} (one of {', '.join(PARTS)})")
@@ -93,6 +96,8 @@ def variant_call(name: str, short: dict, long: dict) -> dict:
     """The render call (keyword arguments and "integrator") of a variant from
     the two trainings' spied final render calls."""
     head, parts = parse_variant(name)
+    if head == "path":
+        return dict(HELD, integrator="path", sampler=short["kw"].get("sampler"))
     src = long if head == "long" else short
     call = dict(src["kw"], **HELD, integrator=dict(src["integrator"]))
     for p in parts:

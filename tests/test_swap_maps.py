@@ -58,6 +58,10 @@ def test_a_variant_swaps_the_parts_it_names_and_nothing_else(swap_maps):
                 assert np.array_equal(call[k], want), (name, k)
         # (the maps held fixed: no refinement or check between the passes, no time limit)
         assert call["pixel_split_refine"] is None and call["delta_split_refine"] is None and call["time"] is None
+    # path: the peer at the same sampler, without the trainings' guide or maps
+    p = swap_maps.variant_call("path", short, long)
+    assert p["integrator"] == "path" and p["sampler"] == "independent" and p["time"] is None
+    assert not any(isinstance(v, np.ndarray) for v in p.values())
     long_call = swap_maps.variant_call("long", short, long)
     assert long_call["integrator"]["guide"] == "guide20.0"
     assert all(np.array_equal(long_call[k], v) for k, v in long["kw"].items() if isinstance(v, np.ndarray))
@@ -80,7 +84,7 @@ def test_a_variant_swaps_the_parts_it_names_and_nothing_else(swap_maps):
     new = (d.glass_map > 1) & (d.base <= 1)
     assert np.all(gp["delta_branch_map"][new] == 0) and gp["delta_branch_map"][0, 0] == 0   # ((0, 0): plain in d)
     assert np.all(gp["delta_branch_map"][~new & ~d.plain] == 1)
-    for bad in ["long+guide", "short+nothing", "short+guide+guide", "short+glass+delta_split", "medium",
+    for bad in ["long+guide", "path+guide", "short+nothing", "short+guide+guide", "short+glass+delta_split", "medium",
                 "short+grow0", "short+grow2+glass", "short+glassplain+glass"]:
         with pytest.raises(ValueError):
             swap_maps.parse_variant(bad)
