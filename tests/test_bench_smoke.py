@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import re
 import shutil
 
 import numpy as np
@@ -191,6 +192,24 @@ def test_curves_of_the_seeds_variance(env):
     assert cli.main(["curves", "--scenes", env["scene"], "--param", "res=24", "--integrators", "path",
                      "--times", "0.2", "--seeds", "1", "--metric", "seed_var",
                      "--cache", env["cache"], "--out", str(out)]) == 1
+
+
+def test_curves_interleave_the_integrators(env, capsys):
+    """curves runs seed by seed, every integrator within a seed, their order
+    turned by one each seed, so a drift of the machine's speed falls on all
+    alike; the report keeps the order given (the first is the targets'
+    reference)."""
+    out = env["dir"] / "curves_order"
+    assert cli.main(["curves", "--scenes", env["scene"], "--param", "res=24", "--integrators", "path", "sms_star",
+                     "--times", "0.1", "--seeds", "3", "--metric", "seed_var",
+                     "--cache", env["cache"], "--out", str(out)]) == 0
+    order = re.findall(r"\[curves\] .* (path|sms_star) seed (\d+) budget", capsys.readouterr().err)
+    assert order == [("path", "0"), ("sms_star", "0"), ("sms_star", "1"), ("path", "1"),
+                     ("path", "2"), ("sms_star", "2")]
+    data = json.loads((out / "results.json").read_text())
+    methods = data["scenes"][0]["methods"]
+    assert [m["integrator"] for m in methods] == ["path", "sms_star"]
+    assert all([r["seed"] for r in p["runs"]] == [0, 1, 2] for m in methods for p in m["points"])
 
 
 def test_costs(env):

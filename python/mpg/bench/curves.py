@@ -79,7 +79,8 @@ def run(scenes: list[BenchScene], specs: list[IntegratorSpec], times: list[float
     results: dict[str, Any] = {"command": report.command_line(argv), "times": times,
                                "seeds": seeds, "metric": metric, "scenes": []}
     md = [report.header("Error against time", argv),
-          (f"Budgets {', '.join(f'{t:g}' for t in times)} s, {seeds} seed(s); curves are the "
+          (f"Budgets {', '.join(f'{t:g}' for t in times)} s, {seeds} seed(s), the integrators run in "
+           "turn per seed (order rotated by one per seed); curves are the "
            "mean over seeds, bands ± one sample standard deviation. Time to target: log-log "
            "interpolation on the mean relMSE curve (`*`: extrapolated with error ~ 1/t); the "
            "default target is the first integrator's final relMSE."
@@ -92,32 +93,49 @@ def run(scenes: list[BenchScene], specs: list[IntegratorSpec], times: list[float
         srec: dict[str, Any] = {"scene": sc.to_json(),
                                 "reference": _ref_summary(ref_info, ref, ref_var, box),
                                 "methods": [], "skipped": []}
+        active = []
         for spec in specs:
             why = skip_reason(spec)
             if why:
                 log(f"mpg-bench: skipping {spec.text}: {why}")
                 srec["skipped"].append({"integrator": spec.text, "reason": why})
-                continue
-            per_time: list[list[dict[str, Any]]] = [[] for _ in times]
-            images: list[list[np.ndarray]] = [[] for _ in times]
-            try:
-                for s in range(seeds):
+            else:
+                active.append(spec)
+        per_time = [[[] for _ in times] for _ in active]
+        images = [[[] for _ in times] for _ in active]
+        failed: dict[int, str] = {}
+        # Seeds outer, integrators inner, their order turned by one each
+        # seed: a drift of the machine's speed during the run falls on every
+        # integrator alike (run one after another, double_slabs' `path` ran
+        # 34 spp/s where it had run 40 an hour before, while `mpg` kept its
+        # pace: its ratio read 1.17x too high; docs/results.md, forty-fifth
+        # session).
+        for s in range(seeds):
+            for j in range(len(active)):
+                a = (s + j) % len(active)
+                spec = active[a]
+                if a in failed:
+                    continue
+                try:
                     for i, r in enumerate(run_timed(spec, sc, times, seed=s, threads=threads)):
                         rec = error_record(r, ref, box)
                         rec.update(seed=s, budget=times[i])
-                        per_time[i].append(rec)
-                        images[i].append(r.rgb)
+                        per_time[a][i].append(rec)
+                        images[a][i].append(r.rgb)
                         log(f"[curves] {sc.label} {spec.text} seed {s} budget {times[i]:g} s: "
                             f"{r.seconds:.2f} s, {r.spp} spp, "
                             f"relMSE {rec['metrics']['image']['relmse']:.4g}")
-            except MPGError as e:
-                log(f"mpg-bench: skipping {spec.text} on {sc.label}: {e}")
-                srec["skipped"].append({"integrator": spec.text, "reason": str(e)})
-                continue
-            from mpg.bench.compare import seed_variances, summarise
+                except MPGError as e:
+                    log(f"mpg-bench: skipping {spec.text} on {sc.label}: {e}")
+                    failed[a] = str(e)
+        from mpg.bench.compare import seed_variances, summarise
 
+        for a, spec in enumerate(active):   # (in the order given: the first is the targets' reference)
+            if a in failed:
+                srec["skipped"].append({"integrator": spec.text, "reason": failed[a]})
+                continue
             points = [{"budget": t, "runs": runs, "summary": dict(summarise(runs), seed_variance=seed_variances(ims, box))}
-                      for t, runs, ims in zip(times, per_time, images)]
+                      for t, runs, ims in zip(times, per_time[a], images[a])]
             srec["methods"].append({"integrator": spec.text, "points": points})
         _targets(srec, target_relmse)
         png = f"curves-{_safe(sc.label)}.png"
