@@ -218,6 +218,61 @@ void count_seed(int n, TrialTally* tally) {
 }
 }  // namespace
 
+bool ChainEstimator::initial_seed_dir(const DVec3& xD, PCG32& rng, DVec3& dir) const {
+  // x_1 uniform by area on the specular shapes; the seed direction aims at it.
+  float u = rng.next_float();
+  const size_t k = seed_dist_.sample(u);
+  Vec3 p1, n1;
+  scene_.shapes[size_t(seed_shapes_[k])].sample_position(Vec2(rng.next_float(), rng.next_float()), p1, n1);
+  dir = to_d(p1) - xD;
+  return glm::length(dir) > 0.0;
+}
+
+bool ChainEstimator::trace_fresnel_seed(const DVec3& xD, const DVec3& nD, const DVec3& dir, int n,
+                                        const std::vector<Vec2>& offsets, PCG32& rng, ManifoldChain& chain,
+                                        std::string& tau, Stats& st, const std::string* want_tau) const {
+  // Trace n vertices choosing R/T at dielectrics by their Fresnel reflectance.
+  chain.xD = xD;
+  chain.nD = nD;
+  chain.v.clear();
+  tau.clear();
+  DVec3 o = xD, on = nD, d = glm::normalize(dir);
+  for (int i = 0; i < n; ++i) {
+    const Vec3 of = offset_ray_origin(to_f(o), to_f(on), to_f(d));
+    const SurfaceInteraction si = scene_.intersect(of, to_f(d), 0.f, kInf);
+    if (!si.valid || !is_chain_shape(si.shape)) {
+      st.walk_failures[size_t(WalkFailure::LeftSurface)]++;
+      return false;
+    }
+    ManifoldVertex v;
+    if (!walk_.make_vertex(si, true, v, &offsets[size_t(i)])) {
+      st.walk_failures[size_t(WalkFailure::NotSpecular)]++;
+      return false;
+    }
+    const DVec3 wi = -d;
+    const double ci = glm::dot(wi, v.n);
+    bool reflect = true;
+    if (v.dielectric) {
+      const float F = fresnel_dielectric(float(ci), float(v.eta)).F;
+      reflect = rng.next_float() < F;
+    }
+    v.reflect = reflect;
+    if (want_tau && size_t(i) < want_tau->size() && (reflect ? 'R' : 'T') != (*want_tau)[size_t(i)]) {
+      st.trials_tau_cut++;  // cannot hit
+      return false;
+    }
+    if (!ManifoldWalk::scatter(wi, v.n, v.eta, reflect, d)) {
+      st.walk_failures[size_t(WalkFailure::TotalInternalReflection)]++;
+      return false;
+    }
+    o = v.p;
+    on = v.ng;
+    tau.push_back(reflect ? 'R' : 'T');
+    chain.v.push_back(v);
+  }
+  return true;
+}
+
 bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
                            const std::vector<Vec2>& offsets, const ChainDistribution* guide,
                            PCG32& rng, ManifoldChain& chain, std::string& tau, Stats& st,
@@ -226,42 +281,60 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
   if (guide && rng.next_float() < p_.guide_fraction) {
     // Learned seed (MPG Sec. 5.5): tau ~ P_e(tau | n), omega_D ~ the vMF mixture of
     // (n, tau); one-sample MIS with the initial distribution below (Eq. 13).
+    // The ablations of supplemental Fig. 3 switch one of the two off:
+    // guide_tau off: omega_D from the leaf's mixture over every tau of n (the
+    // type drawn and forgotten), the letters by Fresnel along the seed as the
+    // initial law draws them; guide_dir off: tau ~ P_e(tau | n), omega_D toward
+    // x_1 uniform by area on the specular shapes, the seed traced with those
+    // letters. The Bernoulli trials repeat this same procedure, so 1/P stays
+    // the procedure's own (Eq. 15) whichever parts it guides.
     st.guided_trials++;
     const bool timed = time_guide_call();
     const auto tg = timed ? Clock::now() : Clock::time_point{};
-    Vec3 dir;
+    Vec3 dir(0.f);
     const float ut = rng.next_float();
-    const double ul = rng.next_double();  // the lobe: alias bin and the fraction within it
-    const Vec2 u(rng.next_float(), rng.next_float());
     const int type = guide->sample_type(n, ut);
-    const bool ok = type >= 0 && guide->sample_dir_of(type, ul, u, Vec3(xD), dir);
+    bool ok = type >= 0;
+    if (p_.guide_dir) {
+      const double ul = rng.next_double();  // the lobe: alias bin and the fraction within it
+      const Vec2 u(rng.next_float(), rng.next_float());
+      ok = ok && guide->sample_dir_of(type, ul, u, Vec3(xD), dir);
+    }
     if (timed) add_guide_time(st, tg);
     if (!ok) return false;
-    const uint16_t bits = guide->type_tau(type);
-    tau.assign(size_t(n), 'T');
-    for (int i = 0; i < n; ++i)
-      if (bits & (1u << i)) tau[size_t(i)] = 'R';
-    if (want_tau && tau != *want_tau) {  // cannot hit: no seed traced, no walk
-      st.trials_tau_cut++;
-      return false;
-    }
     chain.xL = lp.p;
     chain.nL = lp.n;
     WalkFailure why = WalkFailure::None;
-    // A trial's work in vertex steps (a traced or reprojected vertex: a ray and
-    // a chart), deterministic unlike chain_ns: mpg.chain_rates' cost model. The
-    // traced seed counts whether it fails or not, then each accepted Newton
-    // iteration (the line search's rejected tries are not counted: see
-    // walk_reprojections and design-notes, "Step control").
-    st.walk_steps += uint64_t(n);
-    count_seed(n, tally);
-    if (!walk_.trace_seed(xD, nD, to_d(dir), tau, chain, why, &offsets)) {
-      st.walk_failures[size_t(why)]++;
-      return false;
-    }
-    if (!on_chain_shapes(chain)) {
-      st.walk_failures[size_t(WalkFailure::LeftSurface)]++;
-      return false;
+    if (p_.guide_tau) {
+      const uint16_t bits = guide->type_tau(type);
+      tau.assign(size_t(n), 'T');
+      for (int i = 0; i < n; ++i)
+        if (bits & (1u << i)) tau[size_t(i)] = 'R';
+      if (want_tau && tau != *want_tau) {  // cannot hit: no seed traced, no walk
+        st.trials_tau_cut++;
+        return false;
+      }
+      DVec3 d = to_d(dir);
+      if (!p_.guide_dir && !initial_seed_dir(xD, rng, d)) return false;
+      // A trial's work in vertex steps (a traced or reprojected vertex: a ray and
+      // a chart), deterministic unlike chain_ns: mpg.chain_rates' cost model. The
+      // traced seed counts whether it fails or not, then each accepted Newton
+      // iteration (the line search's rejected tries are not counted: see
+      // walk_reprojections and design-notes, "Step control").
+      st.walk_steps += uint64_t(n);
+      count_seed(n, tally);
+      if (!walk_.trace_seed(xD, nD, d, tau, chain, why, &offsets)) {
+        st.walk_failures[size_t(why)]++;
+        return false;
+      }
+      if (!on_chain_shapes(chain)) {
+        st.walk_failures[size_t(WalkFailure::LeftSurface)]++;
+        return false;
+      }
+    } else {
+      st.walk_steps += uint64_t(n);  // the traced seed
+      count_seed(n, tally);
+      if (!trace_fresnel_seed(xD, nD, to_d(dir), n, offsets, rng, chain, tau, st, want_tau)) return false;
     }
     const WalkResult r = walk_.solve(chain);
     count_walk(r, n, st, tally);
@@ -271,20 +344,15 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     }
     return true;
   }
-  // x_1 uniform by area on the specular shapes; the seed direction aims at it.
-  float u = rng.next_float();
-  const size_t k = seed_dist_.sample(u);
-  Vec3 p1, n1;
-  scene_.shapes[size_t(seed_shapes_[k])].sample_position(Vec2(rng.next_float(), rng.next_float()), p1, n1);
-  const DVec3 dir = to_d(p1) - xD;
-  if (!(glm::length(dir) > 0.0)) return false;
+  DVec3 dir;
+  if (!initial_seed_dir(xD, rng, dir)) return false;
   WalkFailure why = WalkFailure::None;
   chain.xL = lp.p;
   chain.nL = lp.n;
+  st.walk_steps += uint64_t(n);  // the traced seed
+  count_seed(n, tally);
   if (p_.mode == ChainParams::Mode::Sms) {
     tau = p_.tau;
-    st.walk_steps += uint64_t(n);  // the traced seed
-    count_seed(n, tally);
     if (!walk_.trace_seed(xD, nD, dir, tau, chain, why, &offsets)) {
       st.walk_failures[size_t(why)]++;
       return false;
@@ -293,48 +361,8 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
       st.walk_failures[size_t(WalkFailure::LeftSurface)]++;
       return false;
     }
-  } else {
-    // Trace n vertices choosing R/T at dielectrics by their Fresnel reflectance.
-    chain.xD = xD;
-    chain.nD = nD;
-    chain.v.clear();
-    tau.clear();
-    st.walk_steps += uint64_t(n);  // the traced seed
-    count_seed(n, tally);
-    DVec3 o = xD, on = nD, d = glm::normalize(dir);
-    for (int i = 0; i < n; ++i) {
-      const Vec3 of = offset_ray_origin(to_f(o), to_f(on), to_f(d));
-      const SurfaceInteraction si = scene_.intersect(of, to_f(d), 0.f, kInf);
-      if (!si.valid || !is_chain_shape(si.shape)) {
-        st.walk_failures[size_t(WalkFailure::LeftSurface)]++;
-        return false;
-      }
-      ManifoldVertex v;
-      if (!walk_.make_vertex(si, true, v, &offsets[size_t(i)])) {
-        st.walk_failures[size_t(WalkFailure::NotSpecular)]++;
-        return false;
-      }
-      const DVec3 wi = -d;
-      const double ci = glm::dot(wi, v.n);
-      bool reflect = true;
-      if (v.dielectric) {
-        const float F = fresnel_dielectric(float(ci), float(v.eta)).F;
-        reflect = rng.next_float() < F;
-      }
-      v.reflect = reflect;
-      if (want_tau && size_t(i) < want_tau->size() && (reflect ? 'R' : 'T') != (*want_tau)[size_t(i)]) {
-        st.trials_tau_cut++;  // cannot hit
-        return false;
-      }
-      if (!ManifoldWalk::scatter(wi, v.n, v.eta, reflect, d)) {
-        st.walk_failures[size_t(WalkFailure::TotalInternalReflection)]++;
-        return false;
-      }
-      o = v.p;
-      on = v.ng;
-      tau.push_back(reflect ? 'R' : 'T');
-      chain.v.push_back(v);
-    }
+  } else if (!trace_fresnel_seed(xD, nD, dir, n, offsets, rng, chain, tau, st, want_tau)) {
+    return false;
   }
   const WalkResult r = walk_.solve(chain);
   count_walk(r, n, st, tally);

@@ -367,6 +367,14 @@ class ChainEstimator {
   // One trial: seed + walk. Fills chain and tau on success. With want_tau (a
   // Bernoulli trial, which hits only a chain of those letters) the trial stops,
   // unsuccessful, as soon as its seed's letters differ: the walk keeps them.
+  // The initial law's seed direction: toward x_1 uniform by area on the
+  // specular shapes (false: x_1 at x_D).
+  bool initial_seed_dir(const DVec3& xD, PCG32& rng, DVec3& dir) const;
+  // n seed vertices traced from x_D along dir, the letters by Fresnel at
+  // dielectrics (want_tau: stop, unsuccessful, at the first other letter).
+  bool trace_fresnel_seed(const DVec3& xD, const DVec3& nD, const DVec3& dir, int n,
+                          const std::vector<Vec2>& offsets, PCG32& rng, ManifoldChain& chain,
+                          std::string& tau, Stats& st, const std::string* want_tau) const;
   bool trial(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
              const std::vector<Vec2>& offsets, const ChainDistribution* guide, PCG32& rng,
              ManifoldChain& chain, std::string& tau, Stats& st,
