@@ -150,9 +150,13 @@ def test_the_photon_guide_joins_every_training_guide(scenes_dir):
     assert on["guide_leaves"] > off["guide_leaves"]
     assert on["seconds_photon_guide"] > 0
     assert on["guide_bytes"] == (on["subpath_samples"] + on["photon_guide_samples"]) * _core.SUBPATH_SAMPLE_BYTES
+    # the whole guide: its samples and more (the tree, copies, the leaves' lobes)
+    assert on["guide_memory_bytes"] > on["guide_bytes"] and on["guide_bytes_per_sample"] > 40
+    assert off["guide_memory_bytes"] > 0
     # no training (training_fraction 0): no photons either
     none = mpg.render(sc, {"type": "mpg", "training_fraction": 0.0}, spp=4, seed=4, progress=False).stats
     assert none["photon_guide_samples"] == 0 and none["seconds_photon_guide"] == 0
+    assert none["guide_memory_bytes"] == 0 and none["guide_bytes_per_sample"] == 0
     # init=photon: its first guide is its own photons' alone; the photon
     # guide's join the training's guides
     ini = mpg.render(sc, {"type": "mpg", "init": "photon", "photons": 5000}, spp=24, seed=4, progress=False).stats

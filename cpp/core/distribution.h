@@ -15,6 +15,10 @@ class DiscreteDistribution {
   DiscreteDistribution() = default;
   explicit DiscreteDistribution(const std::vector<float>& weights) { build(weights); }
 
+  // Heap bytes of its tables (capacity, not size: what the guide's memory holds).
+  size_t memory_bytes() const {
+    return pmf_.capacity() * sizeof(float) + cdf_.capacity() * sizeof(double) + guide_.capacity() * sizeof(guide_[0]);
+  }
   void build(const std::vector<float>& weights) {
     pmf_.assign(weights.size(), 0.f);
     cdf_.assign(weights.size() + 1, 0.0);

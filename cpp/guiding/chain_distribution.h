@@ -76,6 +76,11 @@ class ChainDistribution {
   // Does the leaf hold a sample of type (n, tau)?
   bool has_type(int n, uint16_t tau) const { return find_type(n, tau) >= 0; }
   uint16_t type_tau(int t) const { return types_[size_t(t)].tau; }
+  // Bytes of the leaf's distribution: the object and its tables' heap.
+  size_t memory_bytes() const {
+    return sizeof(*this) + n_dist_.memory_bytes() + types_.capacity() * sizeof(Type) +
+           lobes_.capacity() * sizeof(LobeEntry) + lobe_pmf_.capacity() * sizeof(float);
+  }
   // (kappa_cap: the lobe's kappa capped there, pdf_dir_defensive's broad share)
   bool sample_dir_of(int t, double u_lobe, const Vec2& u, const Vec3& xD, Vec3& dir,
                      float kappa_cap = std::numeric_limits<float>::infinity()) const;

@@ -56,6 +56,14 @@ class GuidingState {
     return cfg_.structure == GuideStructure::Knn ? knn_samples_.size() : tree_.num_samples_stored();
   }
   double build_seconds() const { return build_seconds_; }
+  // Bytes the built guide keeps (the structure, its samples and every leaf's
+  // distribution; knn: its samples and kd-tree, the per-thread caches left out).
+  size_t memory_bytes() const {
+    size_t t = tree_.memory_bytes() + dists_.capacity() * sizeof(ChainDistribution) +
+               knn_samples_.capacity() * sizeof(SubpathSample) + knn_.memory_bytes();
+    for (const ChainDistribution& d : dists_) t += d.memory_bytes() - sizeof(ChainDistribution);
+    return t;
+  }
   double structure_seconds() const { return structure_seconds_; }  // the STree / kd-tree part of it
   void normalise(const Vec3& xD, const Vec3& xL, float out[6]) const { cube_.normalise(xD, xL, out); }
 

@@ -21,6 +21,9 @@ class KnnIndex {
   size_t size() const { return pts_.size() / 6; }
   // The k nearest points of q (Euclidean, distances in double), sorted by index.
   void query(const float q[6], size_t k, std::vector<uint32_t>& out) const;
+  size_t memory_bytes() const {
+    return pts_.capacity() * sizeof(float) + idx_.capacity() * sizeof(uint32_t) + nodes_.capacity() * sizeof(Node);
+  }
 
  private:
   struct Node {

@@ -386,6 +386,14 @@ int STree::leaf_of(const Vec3& xD, const Vec3& xL) const {
   return leaf_of_normalised(q);
 }
 
+size_t STree::memory_bytes() const {
+  size_t t = nodes_.capacity() * sizeof(Node) + top_.capacity() * sizeof(int) +
+             leaves_.capacity() * sizeof(Leaf) + samples_.capacity() * sizeof(SubpathSample);
+  for (const Leaf& l : leaves_) t += l.filtered.capacity() * sizeof(uint32_t);
+  for (const auto& c : coords_) t += c.capacity() * sizeof(float);
+  return t + codes_.capacity() * sizeof(uint64_t);
+}
+
 size_t STree::num_samples_stored() const {
   size_t t = 0;
   for (const Leaf& l : leaves_) t += l.size();
