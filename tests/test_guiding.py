@@ -66,6 +66,24 @@ def _box_distance(q, lo, hi):
     return np.maximum(np.maximum(lo - q, 0), q - hi)
 
 
+def test_stree_depth_cap_stops_a_node_it_cannot_split():
+    """Samples at one (x_D, x_L) can never be separated by midpoint splits:
+    the node splits down to the depth cap and stops there, every sample in
+    one leaf at that depth above the threshold (an uncapped build would
+    recurse for ever). The rest of the samples still split normally."""
+    N = 4000
+    xD, xL, d, n, tau, w = _samples(N)
+    xD[:1000] = 0.123
+    xL[:1000] = -0.456
+    for cap in (8, 36):
+        g = _build(xD, xL, d, n, tau, w, c=1.0, epsilon=0.0, max_depth=cap)
+        leaf = g.leaf(g.leaf_of(xD[0], xL[0]))
+        assert leaf["depth"] == cap and leaf["unfiltered"] >= 1000 > g.threshold
+        others = [g.leaf(i) for i in range(g.num_leaves)]
+        assert all(l["unfiltered"] <= g.threshold or l["depth"] == cap for l in others)
+        assert sum(l["unfiltered"] for l in others) == N
+
+
 @pytest.mark.parametrize("eps", [0.0, 0.1, 0.3])
 def test_stree_invariants(eps):
     """Nearest filtering (supplemental Sec. 3.3): unfiltered samples in their
@@ -589,6 +607,8 @@ def test_mpg_is_unbiased_against_path_tracing(scene, params, scenes_dir):
     assert st["chain_rate_mode"] == ("fixed" if "chain_rate" in params else "per-pixel")
     if "chain_rate" in params:   # one rate: the one asked for is reported
         assert st["chain_rate_mean"] == pytest.approx(params["chain_rate"])
+    if params.get("selective"):   # the young tree's empty leaves stopped estimates
+        assert st["chain_inactive"] > 0
     if params.get("known_types") is False:
         assert st["chain_unknown_type"] == 0
     elif params.get("known_types"):   # first trials of unseen types found and handed over

@@ -253,6 +253,24 @@ def test_mpg_photon_init_matches_the_mirror_closed_form(params):
     assert img.stats["chain_contributions"] > 0
 
 
+def test_mpg_shows_its_training_progress(scenes_dir, capsys):
+    """With progress on, each training iteration reports its number, spp (and
+    all so far), sub-path samples, leaves, time and what is left of the
+    training budget; then the render's bar. Off: nothing on stderr."""
+    sc = mpg.load_file(scenes_dir / "sphere_glass.xml", res="16")
+    mpg.render(sc, "mpg", spp=16, seed=1, progress=True)
+    err = capsys.readouterr().err
+    for i in (1, 2):
+        assert f"mpg: training iteration {i}: " in err
+    assert "sub-path samples" in err and "leaves" in err and "spp of training left" in err
+    import re
+    assert re.search(r"\] +[0-9.]+%  \d+/\d+ spp .*ETA", err)   # the render's bar
+    mpg.render(sc, "mpg", time=0.5, seed=1, progress=True)
+    assert "s of training left" in capsys.readouterr().err
+    mpg.render(sc, "mpg", spp=16, seed=1, progress=False)
+    assert capsys.readouterr().err == ""
+
+
 @pytest.mark.parametrize("params", [{}, {"guide_n": False}, {"guide_tau": False}, {"guide_dir": False},
                                     {"stree_filter": "none"}, {"stree_filter": "stochastic"},
                                     {"guide_structure": "knn", "knn_k": 64}])
