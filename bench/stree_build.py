@@ -7,7 +7,8 @@ supplemental Figs. 1-2), and the query cost of the STree against exact kNN.
 
 Per variant: the best wall time of the build call (numpy -> C++ conversion
 included), its C++ part (`build_seconds`) and tree part (`structure_seconds`),
-the process CPU time of that run, leaves and samples stored per input sample.
+the process CPU time of that run, leaves, samples stored per input sample
+and the built guide's memory per input sample (`GuidingState.memory_bytes`).
 The machine's load average is recorded: on a shared machine the wall time of
 two threads is only meaningful next to it. Writes bench/results/stree_build.json."""
 
@@ -65,7 +66,8 @@ def main() -> int:
             if best is None or run["seconds"] < best["seconds"]:
                 best = run
         best.update(leaves=g.num_leaves, samples_stored=g.samples_stored,
-                    stored_per_input=g.samples_stored / args.n, threshold=g.threshold)
+                    stored_per_input=g.samples_stored / args.n, threshold=g.threshold,
+                    bytes_per_input=g.memory_bytes / args.n)
         nq = args.queries if kw.get("structure") == "knn" else 100 * args.queries
         sec, found = g.time_queries(qD[:nq], qL[:nq])
         best.update(queries=nq, query_us=1e6 * sec / nq, queries_with_distribution=found)
@@ -74,7 +76,7 @@ def main() -> int:
         out["runs"][name] = best
         print(f"{name:32s} {best['seconds']:.3f} s (C++ {best['build_seconds']:.3f}, tree "
               f"{best['structure_seconds']:.3f}, CPU {best['cpu_seconds']:.3f}), {g.num_leaves} leaves, "
-              f"{best['stored_per_input']:.2f} stored/input, query {best['query_us']:.2f} us", flush=True)
+              f"{best['stored_per_input']:.2f} stored/input, {best['bytes_per_input']:.0f} B/input, query {best['query_us']:.2f} us", flush=True)
     out["loadavg_after"] = os.getloadavg()
     print(f"load average before/after: {out['loadavg_before'][0]:.2f} / {out['loadavg_after'][0]:.2f} "
           f"on {os.cpu_count()} CPUs")
