@@ -368,6 +368,43 @@ def test_pmfs_are_normalised():
     assert checked > 5
 
 
+def test_leaf_distribution_follows_eqs_10_to_12():
+    """One leaf (c = 100) of samples of mixed n and tau: P_e(n) is the
+    weight share of n (Eq. 10), P_e(tau | n) that of (n, tau) within n
+    (Eq. 11), and each type's directional density the weighted mixture of one
+    vMF lobe per sample with kappa_i = sigma_i^-2, sigma_i the (chord)
+    distance to the nearest other direction of the same type (Eq. 12),
+    evaluated in closed form at the lobes' centres and elsewhere."""
+    rng = np.random.default_rng(5)
+    dirs = np.array([[0, 0, 1], [np.sin(0.5), 0, np.cos(0.5)], [0, np.sin(1.1), np.cos(1.1)],
+                     [0, 0, -1], [1, 0, 0], [0, 1, 0], [0.6, 0.8, 0]], np.float64)
+    n = np.array([2, 2, 2, 2, 1, 1, 3], np.int32)
+    tau = np.array([0, 0, 0, 1, 0, 1, 5], np.uint16)   # (2, TT) x3, (2, RT), (1, T), (1, R), (3, RTR)
+    w = np.array([1.0, 2.0, 0.5, 3.0, 1.5, 0.5, 1.0], np.float32)
+    N = len(w)
+    g = _core.GuidingState()
+    g.build(np.zeros((N, 3), np.float32), np.zeros((N, 3), np.float32), dirs.astype(np.float32), n, tau, w,
+            [-1, -1, -1], [1, 1, 1], c=100.0)
+    assert g.num_leaves == 1
+    W = float(w.sum())
+    for k in (1, 2, 3):
+        assert g.pmf_n(0, k) == pytest.approx(w[n == k].sum() / W, rel=1e-5)
+        for t in range(1 << k):
+            sel = (n == k) & (tau == t)
+            assert g.pmf_tau(0, k, t) == pytest.approx(w[sel].sum() / w[n == k].sum(), rel=1e-5, abs=1e-7)
+    # the (2, TT) lobes, in closed form
+    mu = dirs[:3] / np.linalg.norm(dirs[:3], axis=1, keepdims=True)
+    wt = w[:3].astype(np.float64) / w[:3].sum()
+    chord = np.linalg.norm(mu[:, None] - mu[None], axis=2) + np.diag([np.inf] * 3)
+    kappa = 1.0 / chord.min(axis=1) ** 2
+    q = np.concatenate([mu, rng.normal(size=(5, 3))])
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    expect = sum(wt[i] * kappa[i] / (2 * np.pi * (1 - np.exp(-2 * kappa[i]))) * np.exp(kappa[i] * (q @ mu[i] - 1))
+                 for i in range(3))
+    got = np.asarray(g.pdf_dir(0, 2, 0, q.astype(np.float32)), np.float64)
+    assert np.allclose(got, expect, rtol=2e-4), (got, expect)
+
+
 def _one_leaf(rng, d: np.ndarray):
     """A guide of one leaf (c = 100) holding directions d, all of type (2, TT)."""
     N = len(d)
