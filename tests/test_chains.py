@@ -376,6 +376,9 @@ GLOSSY = """<scene version="3.0.0"><integrator type="path"><integer name="max_de
 @pytest.mark.parametrize("kind,integ,spp", [
     ("mirror", {"type": "sms", "tau": "R"}, 256),
     ("sphere", {"type": "sms_star", "max_chain": 3}, 256),
+    # MPG Sec. 5.7: the guided seeds through glossy chains (offset normals)
+    ("mirror", {"type": "mpg", "light_trace": 0, "chain_rate": 1.0}, 256),
+    ("sphere", {"type": "mpg", "light_trace": 0, "chain_rate": 1.0}, 256),
 ])
 def test_glossy_chains_agree_with_path_tracing(kind, integ, spp):
     """Rough interfaces (alpha 0.05 < glossy_threshold) are chain vertices with
@@ -398,7 +401,9 @@ def test_glossy_chains_agree_with_path_tracing(kind, integ, spp):
     _assert_floor_agreement(sc, img, ref)
 
 
-@pytest.mark.parametrize("integ", [{"type": "sms_star", "max_chain": 3}, {"type": "mpg"}])
+@pytest.mark.parametrize("integ", [{"type": "sms_star", "max_chain": 3}, {"type": "mpg"},
+                                   # product sampling at a glossy separator (MPG Eq. 14)
+                                   {"type": "mpg", "product": True, "light_trace_area": False, "chain_rate": 1.0}])
 def test_a_glossy_caustic_receiver_is_a_separator(integ):
     """A glossy floor (alpha 0.05, below glossy_threshold) is a chain vertex
     unless the scene marks it caustic_receiver: then it is a separator, the
