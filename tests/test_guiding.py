@@ -785,8 +785,9 @@ def test_mpg_rejects_unknown_guiding_options(scenes_dir):
 
 
 def test_mpg_does_no_guiding_work_without_caustics():
-    """Effects follow the scene: no specular caster, no training, no chain
-    work, and the very image of `path` for the same seed."""
+    """Effects follow the scene: no specular caster, or a caster and no chain
+    emitter: no training, no chain work, and the very image of `path` for
+    the same seed."""
     xml = """<scene version="3.0.0"><integrator type="path"/>
       <sensor type="perspective"><transform name="to_world"><lookat origin="0,2,4" target="0,0,0" up="0,1,0"/></transform>
         <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="24"/>
@@ -801,3 +802,14 @@ def test_mpg_does_no_guiding_work_without_caustics():
     b = mpg.render(sc, integrator="path", spp=16, seed=4, progress=False)
     assert a.stats["training_iterations"] == 0 and a.stats["chain_estimates"] == 0
     assert np.array_equal(a.rgb, b.rgb)
+    # a glass caster but no chain emitter (an environment light only): the same
+    glass = (xml.replace('<bsdf type="plastic"/>', '<bsdf type="dielectric"/>')
+             .replace('<emitter type="point"><point name="position" x="0" y="3" z="0"/><rgb name="intensity" value="5"/></emitter>',
+                      '<emitter type="constant"><rgb name="radiance" value="1"/></emitter>'))
+    assert "dielectric" in glass and "constant" in glass
+    sc = mpg.load_string(glass)
+    a = mpg.render(sc, integrator="mpg", spp=16, seed=4, progress=False)
+    b = mpg.render(sc, integrator="path", spp=16, seed=4, progress=False)
+    assert a.stats["training_iterations"] == 0 and a.stats["chain_estimates"] == 0
+    assert np.array_equal(a.rgb, b.rgb)
+    assert any("no point/spot/area emitter" in w for w in a.stats["warnings"])
