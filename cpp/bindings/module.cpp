@@ -950,6 +950,7 @@ PYBIND11_MODULE(_core, m) {
       .def_property_readonly("num_nodes", [](const GuidingState& g) { return g.tree().num_nodes(); })
       .def_property_readonly("samples_stored", [](const GuidingState& g) { return g.num_samples_stored(); })
       .def_property_readonly("memory_bytes", &GuidingState::memory_bytes)
+      .def_property_readonly("samples_input", &GuidingState::num_samples_input)
       .def_property_readonly("structure", [](const GuidingState& g) { return guide_structure_name(g.config().structure); })
       .def_property_readonly("filter", [](const GuidingState& g) { return stree_filter_name(g.config().stree.filter); })
       .def_property_readonly("knn_k", [](const GuidingState& g) { return g.knn_k(); })

@@ -55,6 +55,10 @@ class GuidingState {
   size_t num_samples_stored() const {
     return cfg_.structure == GuideStructure::Knn ? knn_samples_.size() : tree_.num_samples_stored();
   }
+  // The samples the guide was built from (each once, copies not counted).
+  size_t num_samples_input() const {
+    return cfg_.structure == GuideStructure::Knn ? knn_samples_.size() : tree_.samples().size();
+  }
   double build_seconds() const { return build_seconds_; }
   // Bytes the built guide keeps (the structure, its samples and every leaf's
   // distribution; knn: its samples and kd-tree, the per-thread caches left out).

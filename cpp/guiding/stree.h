@@ -95,7 +95,8 @@ class STree {
   size_t num_nodes() const { return nodes_.size(); }
   size_t num_samples_stored() const;
   // Bytes the built tree keeps: nodes, the top table, leaves with their
-  // filtered copies' indices, and the samples (the build's scratch excluded).
+  // filtered copies' indices, and the samples (and the build's scratch, which
+  // the build frees: 0 after it).
   size_t memory_bytes() const;
   // Normalised 6D coordinates in [0,1]^6 (the cube around the scene bounds).
   void normalise(const Vec3& xD, const Vec3& xL, float out[6]) const { cube_.normalise(xD, xL, out); }

@@ -278,7 +278,9 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
                            PCG32& rng, ManifoldChain& chain, std::string& tau, Stats& st,
                            TrialTally* tally, const std::string* want_tau) const {
   if (tally) *tally = TrialTally{};
-  if (guide && rng.next_float() < p_.guide_fraction) {
+  // (both ablation switches off: the callers pass no guide; guarded here too,
+  // ahead of any random number, so a guide with nothing to guide is unused)
+  if (guide && (p_.guide_tau || p_.guide_dir) && rng.next_float() < p_.guide_fraction) {
     // Learned seed (MPG Sec. 5.5): tau ~ P_e(tau | n), omega_D ~ the vMF mixture of
     // (n, tau); one-sample MIS with the initial distribution below (Eq. 13).
     // The ablations of supplemental Fig. 3 switch one of the two off:

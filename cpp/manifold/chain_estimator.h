@@ -364,9 +364,6 @@ class ChainEstimator {
   int sample_n(float u, int nmax) const;
   // P(n) of the mixture of the initial law and the learned one (truncated at nmax).
   double pmf_n_mix(int n, int nmax, const ChainDistribution* d, double learned_mass) const;
-  // One trial: seed + walk. Fills chain and tau on success. With want_tau (a
-  // Bernoulli trial, which hits only a chain of those letters) the trial stops,
-  // unsuccessful, as soon as its seed's letters differ: the walk keeps them.
   // The initial law's seed direction: toward x_1 uniform by area on the
   // specular shapes (false: x_1 at x_D).
   bool initial_seed_dir(const DVec3& xD, PCG32& rng, DVec3& dir) const;
@@ -375,6 +372,9 @@ class ChainEstimator {
   bool trace_fresnel_seed(const DVec3& xD, const DVec3& nD, const DVec3& dir, int n,
                           const std::vector<Vec2>& offsets, PCG32& rng, ManifoldChain& chain,
                           std::string& tau, Stats& st, const std::string* want_tau) const;
+  // One trial: seed + walk. Fills chain and tau on success. With want_tau (a
+  // Bernoulli trial, which hits only a chain of those letters) the trial stops,
+  // unsuccessful, as soon as its seed's letters differ: the walk keeps them.
   bool trial(const DVec3& xD, const DVec3& nD, const LightPoint& lp, int n,
              const std::vector<Vec2>& offsets, const ChainDistribution* guide, PCG32& rng,
              ManifoldChain& chain, std::string& tau, Stats& st,

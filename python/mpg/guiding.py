@@ -1206,9 +1206,11 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # the final guide's whole memory (its structure, the samples with their
     # filtered copies' indices, every leaf's distribution) and per sample it
     # was built from: guide_bytes above counts the 40-byte samples alone
-    n_built = samples_last + st["photon_guide_samples"]
+    # (the guide's own count: the final guide may be an earlier build's, or
+    # the photon initialisation's alone)
     st["guide_memory_bytes"] = int(guide.memory_bytes) if guide is not None else 0
-    st["guide_bytes_per_sample"] = st["guide_memory_bytes"] / n_built if guide is not None and n_built else 0.0
+    n_built = int(guide.samples_input) if guide is not None else 0
+    st["guide_bytes_per_sample"] = st["guide_memory_bytes"] / n_built if n_built else 0.0
     st["seconds"] = _time.monotonic() - t0
     # the core's passes (training, the photon pilot's, the render's) and the
     # rest: the maps' learning, guide builds, photons and bookkeeping between
