@@ -237,6 +237,15 @@ def test_mpg_options_are_unbiased_against_path_tracing(params, scenes_dir):
     assert image_zmax(img, ref, regions) < 5
 
 
+def _assert_mirror_closed_form(img):
+    """The image's mean matches test_chains' closed form of the mirror scene
+    (|z| < 5, or within 0.2 %)."""
+    exp = mirror_expected()
+    a = img.rgb[..., 0].astype(np.float64)
+    se = np.sqrt(img.variance[..., 0].sum()) / a.size
+    assert abs(a.mean() - exp.mean()) < max(5 * se, 2e-3 * exp.mean()), (a.mean(), exp.mean(), se)
+
+
 @pytest.mark.parametrize("params", [{"init": "photon"}, {"init": "photon", "training_fraction": 0.0},
                                     {"init": "photon", "known_types": True}, {"lobe_anchor": "auto"}])
 def test_mpg_photon_init_matches_the_mirror_closed_form(params):
@@ -246,10 +255,7 @@ def test_mpg_photon_init_matches_the_mirror_closed_form(params):
     directly, so mpg would light trace the mirror's light, test_light_trace.)"""
     sc = mpg.load_string(mirror_scene())
     img = mpg.render(sc, integrator=dict(params, type="mpg", light_trace=0), spp=64, seed=3, progress=False)
-    exp = mirror_expected()
-    a = img.rgb[..., 0].astype(np.float64)
-    se = np.sqrt(img.variance[..., 0].sum()) / a.size
-    assert abs(a.mean() - exp.mean()) < max(5 * se, 2e-3 * exp.mean()), (a.mean(), exp.mean(), se)
+    _assert_mirror_closed_form(img)
     assert img.stats["chain_contributions"] > 0
 
 
@@ -281,10 +287,7 @@ def test_mpg_ablations_match_the_mirror_closed_form(params):
     (|z| < 5 or within 0.2 %; light_trace 0, as in the photon test above)."""
     sc = mpg.load_string(mirror_scene())
     img = mpg.render(sc, integrator=dict(params, type="mpg", light_trace=0), spp=64, seed=7, progress=False)
-    exp = mirror_expected()
-    a = img.rgb[..., 0].astype(np.float64)
-    se = np.sqrt(img.variance[..., 0].sum()) / a.size
-    assert abs(a.mean() - exp.mean()) < max(5 * se, 2e-3 * exp.mean()), (a.mean(), exp.mean(), se)
+    _assert_mirror_closed_form(img)
     st = img.stats
     assert st["chain_contributions"] > 0 and st["subpath_samples"] > 0
     assert st["guided_trials"] > 0

@@ -306,7 +306,6 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
     if (!ok) return false;
     chain.xL = lp.p;
     chain.nL = lp.n;
-    WalkFailure why = WalkFailure::None;
     if (p_.guide_tau) {
       const uint16_t bits = guide->type_tau(type);
       tau.assign(size_t(n), 'T');
@@ -325,47 +324,46 @@ bool ChainEstimator::trial(const DVec3& xD, const DVec3& nD, const LightPoint& l
       // walk_reprojections and design-notes, "Step control").
       st.walk_steps += uint64_t(n);
       count_seed(n, tally);
-      if (!walk_.trace_seed(xD, nD, d, tau, chain, why, &offsets)) {
-        st.walk_failures[size_t(why)]++;
-        return false;
-      }
-      if (!on_chain_shapes(chain)) {
-        st.walk_failures[size_t(WalkFailure::LeftSurface)]++;
-        return false;
-      }
+      if (!trace_lettered_seed(xD, nD, d, tau, offsets, chain, st)) return false;
     } else {
       st.walk_steps += uint64_t(n);  // the traced seed
       count_seed(n, tally);
       if (!trace_fresnel_seed(xD, nD, to_d(dir), n, offsets, rng, chain, tau, st, want_tau)) return false;
     }
-    const WalkResult r = walk_.solve(chain);
-    count_walk(r, n, st, tally);
-    if (!r.converged) {
-      st.walk_failures[size_t(r.failure)]++;
-      return false;
-    }
-    return true;
+    return solve_seed(chain, n, st, tally);
   }
   DVec3 dir;
   if (!initial_seed_dir(xD, rng, dir)) return false;
-  WalkFailure why = WalkFailure::None;
   chain.xL = lp.p;
   chain.nL = lp.n;
   st.walk_steps += uint64_t(n);  // the traced seed
   count_seed(n, tally);
+  bool seeded;
   if (p_.mode == ChainParams::Mode::Sms) {
     tau = p_.tau;
-    if (!walk_.trace_seed(xD, nD, dir, tau, chain, why, &offsets)) {
-      st.walk_failures[size_t(why)]++;
-      return false;
-    }
-    if (!on_chain_shapes(chain)) {
-      st.walk_failures[size_t(WalkFailure::LeftSurface)]++;
-      return false;
-    }
-  } else if (!trace_fresnel_seed(xD, nD, dir, n, offsets, rng, chain, tau, st, want_tau)) {
+    seeded = trace_lettered_seed(xD, nD, dir, tau, offsets, chain, st);
+  } else {
+    seeded = trace_fresnel_seed(xD, nD, dir, n, offsets, rng, chain, tau, st, want_tau);
+  }
+  return seeded && solve_seed(chain, n, st, tally);
+}
+
+bool ChainEstimator::trace_lettered_seed(const DVec3& xD, const DVec3& nD, const DVec3& dir,
+                                         const std::string& tau, const std::vector<Vec2>& offsets,
+                                         ManifoldChain& chain, Stats& st) const {
+  WalkFailure why = WalkFailure::None;
+  if (!walk_.trace_seed(xD, nD, dir, tau, chain, why, &offsets)) {
+    st.walk_failures[size_t(why)]++;
     return false;
   }
+  if (!on_chain_shapes(chain)) {
+    st.walk_failures[size_t(WalkFailure::LeftSurface)]++;
+    return false;
+  }
+  return true;
+}
+
+bool ChainEstimator::solve_seed(ManifoldChain& chain, int n, Stats& st, TrialTally* tally) const {
   const WalkResult r = walk_.solve(chain);
   count_walk(r, n, st, tally);
   if (!r.converged) {

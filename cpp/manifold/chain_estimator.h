@@ -367,6 +367,12 @@ class ChainEstimator {
   // The initial law's seed direction: toward x_1 uniform by area on the
   // specular shapes (false: x_1 at x_D).
   bool initial_seed_dir(const DVec3& xD, PCG32& rng, DVec3& dir) const;
+  // A seed traced from x_D along dir with the letters tau, on the chain shapes
+  // (failures counted).
+  bool trace_lettered_seed(const DVec3& xD, const DVec3& nD, const DVec3& dir, const std::string& tau,
+                           const std::vector<Vec2>& offsets, ManifoldChain& chain, Stats& st) const;
+  // The walk from a traced seed to an admissible chain (its steps and failures counted).
+  bool solve_seed(ManifoldChain& chain, int n, Stats& st, TrialTally* tally) const;
   // n seed vertices traced from x_D along dir, the letters by Fresnel at
   // dielectrics (want_tau: stop, unsuccessful, at the first other letter).
   bool trace_fresnel_seed(const DVec3& xD, const DVec3& nD, const DVec3& dir, int n,
