@@ -414,6 +414,103 @@ def test_record_delta_leaves_the_image_and_returns_each_samples_own_delta_light(
     assert abs(z) < 5, z
 
 
+def test_record_delta_returns_the_split_paths_values_and_rays(sphere):
+    """RenderJob(record_delta=True) with a delta split: per pixel the sums
+    and squares of the split's extra paths' values (PassResult::split_path_*),
+    their count -- exactly (k - 1) per sample, whatever the path met, and in
+    all the pass's Stats::delta_split_paths -- and their rays (at least one
+    camera ray each); their mean is the light seen through delta scattering
+    only (camera_delta=only's image, |z| < 5 on the lit pixels' total, p <
+    6e-7). Without a split no path is recorded; without record_delta nothing."""
+    k3 = np.full((RES, RES), 3.0, np.float32)
+    a = run_pass(sphere, "path", 16, 7, None, delta_split_map=k3)
+    assert "split_path_n" not in a
+    b = run_pass(sphere, "path", 16, 7, None, record_delta=True)
+    assert np.all(np.asarray(b["split_path_n"]) == 0) and np.all(np.asarray(b["split_path_sum"]) == 0)
+    n = 1024
+    c = run_pass(sphere, "path", n, 29, None, record_delta=True, delta_split_map=k3)
+    pn, rays = np.asarray(c["split_path_n"]), np.asarray(c["split_path_rays"])
+    assert np.all(pn == 2 * n) and pn.sum() == c["stats"]["delta_split_paths"]
+    assert np.all(rays >= pn)
+    ps, ps2 = np.asarray(c["split_path_sum"]), np.asarray(c["split_path_sum_sq"])
+    assert np.isfinite(ps).all() and ps.min() >= 0 and np.all(ps2 >= 0)
+    only = mpg.render(sphere, {"type": "path", "camera_delta": "only"}, spp=4 * n, seed=17, progress=False)
+    lit = only.rgb.mean(axis=2) > 0
+    m = ps[lit] / (2 * n)
+    v = (ps2[lit] / (2 * n) - m * m) / (2 * n - 1)
+    z = (m.sum() - only.rgb[lit].sum()) / np.sqrt(v.sum() + only.variance[lit].sum())
+    assert abs(z) < 5, z
+
+
+def _path_sums(var, n, mean=2.0):
+    """The split paths' sums (height x width x 3) and squares of n paths per
+    pixel with per-path variance var, and their count."""
+    s, s2 = _sums(var, n, mean)
+    return s, s2, np.full(var.shape, float(n))
+
+
+def test_measured_counts_follow_eq3_from_the_render_paths(monkeypatch):
+    """DeltaSplitRefiner.measured_counts (design-notes "The branched paths'
+    footprint"): a split pixel's count from its extra paths' own variance V
+    and rays r over the 3x3 window, Eq. 3: four times the variance -> about
+    twice the paths, four times the rays -> about half; a branched pixel
+    keeps at least one extra path, a plain one whose paths never vary falls
+    to 1; fewer than SPLIT_PATHS_MIN paths in the window, or an unsplit
+    pixel, keep their count; counts are integers in [1, SPLIT_PATHS_MAX];
+    NaN/Inf in the sums give a defined map."""
+    from mpg.chain_rates import SPLIT_PATHS_MAX, SPLIT_PATHS_MIN, DeltaSplitRefiner
+    acc = _refiner_acc(n=16)
+    means = (1.0, 400.0)   # (a sample's cost far above a path's: counts of several)
+    ref = DeltaSplitRefiner(acc, means, objective="mse", branched=True)
+    h = w = 32
+    k = np.full((h, w), 2.0, np.float32)
+    k[:, 28:] = 1.0   # not split
+    var = np.zeros((h, w))
+    var[0:8, 0:8] = 40.0       # A
+    var[0:8, 12:20] = 160.0    # B: 4 V
+    var[16:24, 0:8] = 40.0     # D: V at 4 r
+    var[16:24, 12:20] = 1000.0   # E: 25 V
+    var[:, 28:] = 500.0        # unsplit
+    ps, ps2, pn = _path_sums(var, 64)
+    pn[24:28, 0:8] = SPLIT_PATHS_MIN / 9.0 - 1.0 / 9.0   # F: too few paths even pooled
+    prays = np.full((h, w), 6.0) * pn
+    prays[16:24, 0:8] *= 4.0
+    plain_at = np.zeros((h, w), bool)
+    plain_at[8:12, 20:28] = True   # G: plain paths whose values never vary
+    ref.plain = plain_at
+    wb = np.zeros((h, w))
+    k1, info = ref.measured_counts(k, wb, ps, ps2, pn, prays)
+    m = k1 - 1.0
+    a, b_, d, e = m[2:6, 2:6], m[2:6, 14:18], k1[18:22, 2:6] - 1.0, k1[18:22, 14:18]
+    assert np.all(a == a[0, 0]) and a[0, 0] >= 2
+    assert abs(b_[0, 0] / a[0, 0] - 2.0) <= 1.0 / a[0, 0] + 1e-9
+    assert abs(d[0, 0] / a[0, 0] - 0.5) <= 1.0 / a[0, 0] + 1e-9
+    assert np.all(e == e[0, 0]) and e[0, 0] - 1.0 >= 4.0 * a[0, 0]
+    assert np.all(k1[:, 28:] == 1.0)   # (not split: not the refiner's to split)
+    np.testing.assert_array_equal(k1[25:27, 2:6], 2.0)   # F
+    assert np.all(k1[9:11, 22:26] == 1.0)   # G: plain, nothing to average
+    zero_branched = (var == 0) & (k == 2) & ~plain_at
+    zero_branched[24:28, 0:8] = False
+    assert np.all(k1[zero_branched] >= 2.0)   # (branched: at least one extra path)
+    assert np.all(k1 == np.floor(k1)) and k1.min() >= 1 and k1.max() <= SPLIT_PATHS_MAX
+    assert 0 < info["delta_split_online_measured"] <= 1
+    bad_s, bad_s2 = ps.copy(), ps2.copy()
+    bad_s[3, 3, 0] = np.nan
+    bad_s2[4, 4, 1] = np.inf
+    k2, _ = ref.measured_counts(k, wb, bad_s, bad_s2, pn, prays)
+    assert np.isfinite(k2).all() and k2.min() >= 1 and k2.max() <= SPLIT_PATHS_MAX
+    # the cap
+    import mpg.chain_rates as cr
+    monkeypatch.setattr(cr, "SPLIT_PATHS_MAX", 3)
+    k4, _ = ref.measured_counts(k, wb, ps, ps2, pn, prays)
+    assert k4.max() == 3 and np.all(k4[18:22, 14:18] == 3)
+    monkeypatch.undo()
+    # nothing measured: the counts as given
+    k3, info3 = ref.measured_counts(k, wb, ps, ps2, np.zeros((h, w)), prays)
+    np.testing.assert_array_equal(k3, k)
+    assert info3["delta_split_online_measured"] == 0.0
+
+
 def _refiner_acc(n=7):
     """A training of n spp on 32 x 32 pixels: glass (delta rays) in columns
     8..23, its light seen there in one pixel (16, 16), none elsewhere."""
@@ -489,8 +586,10 @@ def test_mpg_checks_its_delta_split_and_stays_unbiased(sphere, sphere32_path_ref
     """mpg's delta split checked between its passes (delta_split_online, the
     default): checked at least twice, the image agrees with the path tracer
     (|z| < 5 on the image and its quarters, p < 6e-7 each) and reports the
-    map it ran last; off, no check. With the glass split forced (the check's
-    other choice) the image agrees too."""
+    map it ran last; off, no check; without the measured counts
+    (delta_split_measured false) it agrees too. With the glass split forced
+    (the check's other choice), whose counts the measured paths then set,
+    the image agrees too."""
     img = mpg.render(sphere, "mpg", spp=384, seed=43, progress=False)
     st = img.stats
     assert st["delta_split_online_updates"] >= 2 and st["rejected_samples"] == 0
@@ -499,6 +598,10 @@ def test_mpg_checks_its_delta_split_and_stays_unbiased(sphere, sphere32_path_ref
     assert image_zmax(img, sphere32_path_ref, REGIONS) < 5
     off = mpg.render(sphere, {"type": "mpg", "delta_split_online": False}, spp=64, seed=2, progress=False)
     assert "delta_split_online_updates" not in off.stats
+    unmeasured = mpg.render(sphere, {"type": "mpg", "delta_split_measured": False}, spp=384, seed=41,
+                            progress=False)
+    assert "delta_split_online_measured" not in unmeasured.stats
+    assert image_zmax(unmeasured, sphere32_path_ref, REGIONS) < 5
     import mpg.chain_rates as cr
     real = cr.DeltaSplitRefiner.model_f
     try:   # (the glass split always: its F the lower)
@@ -507,6 +610,8 @@ def test_mpg_checks_its_delta_split_and_stays_unbiased(sphere, sphere32_path_ref
     finally:
         cr.DeltaSplitRefiner.model_f = real
     assert glass.stats["delta_split_online_glass"] == 1 and glass.stats["rejected_samples"] == 0
+    # (the split ran from the first check on: its counts from its measured paths, delta_split_measured)
+    assert glass.stats["delta_split_online_measured"] > 0
     assert np.mean(glass.delta_split_map > 1) > np.mean(img.delta_split_map > 1 if img.delta_split_map is not None else 0)
     assert image_zmax(glass, sphere32_path_ref, REGIONS) < 5
     with pytest.raises(mpg.RenderError, match="delta_split_online"):
@@ -532,9 +637,11 @@ def test_render_checks_the_delta_split_from_2_spp_and_the_pixel_split_from_4(sph
                      None if kw.get("delta_split_map") is None else float(kw["delta_split_map"][0, 0])))
         return real(*a, **kw)
 
-    def grefine(ds, ds2, n):
+    def grefine(ds, ds2, n, paths):
         order.append(("delta", n))
         assert ds.shape == (RES, RES, 3) and np.all(ds2 >= 0)
+        # (the split's extra paths so far: sums, squares, count, rays)
+        assert paths[0].shape == (RES, RES, 3) and paths[2].shape == (RES, RES) and np.all(paths[3] >= paths[2])
         return np.full((RES, RES), 1.0 + len(order), np.float32), None, {"delta_split_online_updates": n}
 
     def frefine(ks, ks2, kn, n):

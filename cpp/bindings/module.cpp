@@ -190,6 +190,12 @@ py::dict pass_to_dict(PassResult& r, py::handle base) {
     put("delta_sum", r.delta_sum, rgb);
     put("delta_sum_sq", r.delta_sum_sq, rgb);
   }
+  if (!r.split_path_n.empty()) {   // PassConfig::record_delta (the render's passes)
+    put("split_path_sum", r.split_path_sum, rgb);
+    put("split_path_sum_sq", r.split_path_sum_sq, rgb);
+    put("split_path_n", r.split_path_n, grey);
+    put("split_path_rays", r.split_path_rays, grey);
+  }
   out["lt_photons"] = r.lt_photons;
   out["lt_work_rays"] = r.lt_work_rays;
   out["lt_work_walk_steps"] = r.lt_work_walk_steps;

@@ -70,9 +70,14 @@ void RenderJob::run() {
   const bool classes = cfg_.record_classes;
   const bool delta_rec = costs || cfg_.record_delta;
   constexpr int NC = Stats::kClasses;
+  const bool split_rec = cfg_.record_delta && !costs;   // (PassResult::split_path_*)
   if (cfg_.record_delta && !costs) {
     result_.delta_sum.assign(size_t(W) * H * 3, 0.0);
     result_.delta_sum_sq.assign(size_t(W) * H * 3, 0.0);
+    result_.split_path_sum.assign(size_t(W) * H * 3, 0.0);
+    result_.split_path_sum_sq.assign(size_t(W) * H * 3, 0.0);
+    result_.split_path_n.assign(size_t(W) * H, 0.0);
+    result_.split_path_rays.assign(size_t(W) * H, 0.0);
   }
   if (classes) {
     result_.class_sum.assign(size_t(W) * H * NC, 0.0);
@@ -167,6 +172,7 @@ void RenderJob::run() {
           const uint64_t split_shift = split_sobol ? mix64(split_key ^ pixel) : 0;
           double s[3] = {0, 0, 0}, s2[3] = {0, 0, 0}, a[3] = {0, 0, 0}, a2[3] = {0, 0, 0}, hits = 0;
           double ds[3] = {0, 0, 0}, ds2[3] = {0, 0, 0};
+          double ps[3] = {0, 0, 0}, ps2[3] = {0, 0, 0}, pn = 0, prays = 0;   // (split_rec)
           double cs[NC] = {}, cs2[NC] = {};   // (record_classes)
           st.record_classes = classes;
           double ts[Stats::kTraceKs][3] = {}, ts2[Stats::kTraceKs][3] = {}, tvar[Stats::kTraceKs] = {}, thits = 0;
@@ -244,6 +250,7 @@ void RenderJob::run() {
                 for (int j = 1; j < ksplit; ++j) {
                   Vec3 o2, d2;
                   float tmin2, tmax2;
+                  const uint64_t prays0 = st.rays + st.shadow_rays + st.camera_rays;
                   // With delta_split_sobol the extra paths' film positions are
                   // the points of one randomly shifted Sobol (0,2)-sequence per
                   // pixel, continued over the samples and passes (point
@@ -260,7 +267,16 @@ void RenderJob::run() {
                   else
                     camera_ray(rng, fx, fy, o2, d2, tmin2, tmax2);
                   st.delta_split_paths++;
-                  D += integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st, pbranch);
+                  const Color Dj = integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st, pbranch);
+                  D += Dj;
+                  if (split_rec && std::isfinite(Dj.x) && std::isfinite(Dj.y) && std::isfinite(Dj.z)) {
+                    for (int c = 0; c < 3; ++c) {
+                      ps[c] += Dj[c];
+                      ps2[c] += double(Dj[c]) * Dj[c];
+                    }
+                    pn += 1.0;
+                  }
+                  if (split_rec) prays += double(st.rays + st.shadow_rays + st.camera_rays - prays0);
                 }
                 Ls += D * (1.f / float(pbranch ? ksplit - 1 : ksplit));
                 if (classes) cls[Stats::kClassDelta] += D * (1.f / float(pbranch ? ksplit - 1 : ksplit));
@@ -454,6 +470,14 @@ void RenderJob::run() {
               result_.delta_sum[i + c] = ds[c];
               result_.delta_sum_sq[i + c] = ds2[c];
             }
+          if (split_rec) {
+            for (int c = 0; c < 3; ++c) {
+              result_.split_path_sum[i + c] = ps[c];
+              result_.split_path_sum_sq[i + c] = ps2[c];
+            }
+            result_.split_path_n[size_t(y) * W + x] = pn;
+            result_.split_path_rays[size_t(y) * W + x] = prays;
+          }
         }
       }
       tiles_done_.fetch_add(1);

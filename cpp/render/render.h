@@ -73,6 +73,14 @@ struct PassResult {
   // take away (chain_rates.learn_delta_split: where the trees keep much of
   // it, plain paths).
   std::vector<double> bdelta_n, bdelta_rays, bdelta_within, udelta_within;
+  // With record_delta alone (the render's passes): per pixel the sums
+  // (height x width x 3) of the delta split's extra paths' values
+  // (Integrator::Li_delta, branched or plain as the pixel ran them) and of
+  // their squares, and the count of such paths and their rays, camera rays
+  // included (height x width): one extra path's variance and cost, by which
+  // mpg's held-out check sets a split pixel's count
+  // (chain_rates.DeltaSplitRefiner.measured_counts).
+  std::vector<double> split_path_sum, split_path_sum_sq, split_path_n, split_path_rays;
   // The light tracer's photons of this pass (Integrator::light_tracer; 0:
   // none) and per pixel (height x width x 3) the sums of their splats and of
   // the splats' squares: the pixel's light-traced part is lt_sum / photons

@@ -180,7 +180,11 @@ def _run(args) -> int:
                           f"{100 * st.get('delta_split_fraction', 1.0):.1f} % of the pixels "
                           f"(mean {st.get('delta_split_mean', 0.0):.1f} paths)"
                           + (", then in every pixel that sees glass (the render's own samples chose it)"
-                             if st.get("delta_split_online_glass") else ""))
+                             if st.get("delta_split_online_glass") else "")
+                          + (f", {100 * st['delta_split_online_measured']:.0f} % of them at counts "
+                             f"from their paths' own variance (mean {st['delta_split_online_measured_mean']:.1f}, "
+                             f"up to {st.get('delta_split_online_measured_max', 0.0):.0f})"
+                             if st.get("delta_split_online_measured", 0.0) > 0.0 else ""))
             if st.get("pixel_split", "off") != "off":
                 rates += (f"; pixels split ({st['pixel_split']}) in "
                           f"{100 * st.get('pixel_split_fraction', 1.0):.1f} % of the pixels "

@@ -219,6 +219,10 @@ PIXEL_SPLIT_ONLINE = True
 # chain_rates.DeltaSplitRefiner): a short training sees the light's thin
 # images in bumpy glass in few pixels (docs/results.md, forty-third session)
 DELTA_SPLIT_ONLINE = True
+# ... and there each split pixel's count set by its extra paths' own variance
+# and rays as the render measures them (delta_split_measured;
+# DeltaSplitRefiner.measured_counts)
+DELTA_SPLIT_MEASURED = True
 # Photons whose sub-path samples join every training guide (photon_guide;
 # design-notes "Photons in every guide"; docs/results.md, twenty-eighth
 # session): the leaves then know the chain types the light sends, which the
@@ -533,6 +537,8 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
     # delta_split_online: the learned delta split checked between the passes
     # against every glass pixel split (chain_rates.DeltaSplitRefiner)
     dsplit_online = _as_bool("delta_split_online", params.pop("delta_split_online", DELTA_SPLIT_ONLINE))
+    # delta_split_measured: ... and each split pixel's count by its extra paths' variance
+    dsplit_measured = _as_bool("delta_split_measured", params.pop("delta_split_measured", DELTA_SPLIT_MEASURED))
     psplit = _split_setting("pixel_split", params.pop("pixel_split", PIXEL_SPLIT), ("off", "mse", "relmse", "handoff"))
     # ... with its predicted cost per sample capped ("none": no cap)
     psplit_cap = params.pop("pixel_split_max_cost", PIXEL_SPLIT_MAX_COST)
@@ -1100,9 +1106,11 @@ def render_mpg(scene, params: dict, warnings: list[str], spp: int | None, time: 
 
         glass_ran = [0]   # (the map the pixel split's model last saw: 0 the training's, 1 the glass)
 
-        def delta_refine(ds, ds2, n):
-            k, b, info = drefiner.update(ds, ds2, n)
-            if refiner is not None and info["delta_split_online_glass"] != glass_ran[0]:
+        def delta_refine(ds, ds2, n, paths=None):
+            k, b, info = drefiner.update(ds, ds2, n, paths if dsplit_measured else None)
+            # (the pixel split's model sees the split's counts where they changed)
+            if refiner is not None and (info["delta_split_online_glass"] != glass_ran[0]
+                                        or info.get("delta_split_online_measured", 0.0) > 0.0):
                 refiner.set_delta_split(k if k is not None else uniform(1),
                                         (b if b is not None else True) if params["delta_branch"] > 0 else False)
                 glass_ran[0] = info["delta_split_online_glass"]

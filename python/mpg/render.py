@@ -35,14 +35,14 @@ GUIDE_PARAMS = {"guide", "record", "guide_fraction", "selective", "guide_n", "gu
                 "chain_rate_min", "chain_rate_train", "chain_rate_objective", "chain_handoff",
                 "chain_handoff_negligible",
                 "delta_split", "pixel_split", "pixel_split_max_cost", "pixel_split_online", "delta_split_online",
-                "limit_in_training", "known_types",
+                "delta_split_measured", "limit_in_training", "known_types",
                 "handoff_guided", "handoff_deep", "learn_trace", "trace_tails", "joint_maps",
                 "trace_min_hits", "joint_min_samples", "delta_plain", "handoff_all", "handoff_all_deep",
                 "trace_defensive", "trace_defensive_kappa", "training_continue", "training_clock"}
 BOOL_PARAMS = {"hide_emitters", "delta_split_sobol", "light_trace_through", "light_trace_area", "record", "selective", "guide_n", "guide_tau", "guide_dir", "product",
                "mis", "mis_rate", "chain_handoff", "limit_in_training", "known_types",
                "learn_trace", "trace_tails", "joint_maps", "delta_plain", "pixel_split_online", "delta_split_online",
-               "handoff_all_deep"}
+               "delta_split_measured", "handoff_all_deep"}
 FALLBACK_TO_PATH = {"volpath", "ptracer", "path_filtered_ss"}
 # The SMS paper's integrators, with their parameter names, map onto `sms`.
 SMS_PAPER = {"path_sms_ss", "path_sms_ms"}
@@ -366,13 +366,15 @@ def render(
         refined by the render's own samples"), and each call starts a new epoch of the pixels' Sobol sequences
         (RenderJob's sequence_epoch: fresh shifts, sample_offset from 0), so no later
         film position is a function of a shift the earlier samples depended on.
-    delta_split_refine: a callable (ds, ds2, n) -> (delta split map, delta
+    delta_split_refine: a callable (ds, ds2, n, paths) -> (delta split map, delta
         branch map, info) called before a pass once n reaches DELTA_REFINE_FIRST,
         then at twice the n of its last call and wherever pixel_split_refine is
         called (before it; each call starts a new epoch too);
         ds / ds2 the per-pixel sums and squares of the light each sample's own
         path saw through delta scattering only (RenderJob's record_delta), over
-        the n spp so far. mpg's chain_rates.DeltaSplitRefiner: the maps it returns
+        the n spp so far; paths = (sums, squares, count, rays) per pixel of
+        the split's extra paths' values so far (PassResult::split_path_*).
+        mpg's chain_rates.DeltaSplitRefiner: the maps it returns
         (None: no split; all branched) run from that pass on.
     """
     from mpg import _core
@@ -449,6 +451,8 @@ def render(
     drefine_info = {}   # (the delta split check's stats of the map the last counted pass ran with)
     if delta_split_refine is not None:
         ds_acc, ds_acc2 = np.zeros((h, w, 3)), np.zeros((h, w, 3))
+        # (the split's extra paths' values: sums, squares, count and rays)
+        sp_acc, sp_acc2, sp_n, sp_rays = np.zeros((h, w, 3)), np.zeros((h, w, 3)), np.zeros((h, w)), np.zeros((h, w))
         # (the same for the delta split: its maps and stats)
         pending_dinfo, ran_delta = {}, (delta_split_map, delta_branch_map)
     # Ctrl-C (and SIGTERM where a caller such as mpg-render maps it to an
@@ -476,7 +480,8 @@ def render(
                 # (before the pass is sized: its time comes off what is left)
                 if delta_due:
                     # (first: the pixel split's model counts the delta split's cost)
-                    delta_split_map, delta_branch_map, pending_dinfo = delta_split_refine(ds_acc, ds_acc2, done)
+                    delta_split_map, delta_branch_map, pending_dinfo = delta_split_refine(
+                        ds_acc, ds_acc2, done, (sp_acc, sp_acc2, sp_n, sp_rays))
                     drefine_at = 2 * done
                 if split_due:
                     pixel_split_map, pending_info = pixel_split_refine(ks, ks2, kn, done)
@@ -550,6 +555,11 @@ def render(
                 ran_delta, drefine_info = (delta_split_map, delta_branch_map), pending_dinfo
                 ds_acc += r["delta_sum"]
                 ds_acc2 += r["delta_sum_sq"]
+                if "split_path_n" in r:
+                    sp_acc += r["split_path_sum"]
+                    sp_acc2 += r["split_path_sum_sq"]
+                    sp_n += r["split_path_n"]
+                    sp_rays += r["split_path_rays"]
             if r["lt_photons"] > 0:
                 lt_acc = r["lt_sum"] if lt_acc is None else lt_acc + r["lt_sum"]
                 lt_acc2 = r["lt_sum_sq"] if lt_acc2 is None else lt_acc2 + r["lt_sum_sq"]
