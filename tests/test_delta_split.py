@@ -434,6 +434,14 @@ def test_record_delta_returns_the_split_paths_values_and_rays(sphere):
     assert np.all(rays >= pn)
     ps, ps2 = np.asarray(c["split_path_sum"]), np.asarray(c["split_path_sum_sq"])
     assert np.isfinite(ps).all() and ps.min() >= 0 and np.all(ps2 >= 0)
+    # squares of the same values: sum x^2 >= (sum x)^2 / n per pixel and
+    # channel, and positive exactly where a path saw the light
+    assert np.all(ps2 * (2 * n) >= ps * ps * (1 - 1e-9))
+    np.testing.assert_array_equal(ps2 > 0, ps > 0)
+    # a pixel split: every sub-sample traces its k - 1 paths
+    p2 = run_pass(sphere, "path", 8, 31, None, record_delta=True, delta_split_map=k3,
+                  pixel_split_map=np.full((RES, RES), 2.0, np.float32))
+    assert np.all(np.asarray(p2["split_path_n"]) == 2 * 2 * 8)
     only = mpg.render(sphere, {"type": "path", "camera_delta": "only"}, spp=4 * n, seed=17, progress=False)
     lit = only.rgb.mean(axis=2) > 0
     m = ps[lit] / (2 * n)
@@ -450,17 +458,19 @@ def _path_sums(var, n, mean=2.0):
 
 
 def test_measured_counts_follow_eq3_from_the_render_paths(monkeypatch):
-    """DeltaSplitRefiner.measured_counts (design-notes "The branched paths'
-    footprint"): a split pixel's count from its extra paths' own variance V
+    """DeltaSplitRefiner.measured_counts (design-notes "The split's counts
+    from its own paths"): a split pixel's count from its extra paths' own variance V
     and rays r over the 3x3 window, Eq. 3: four times the variance -> about
     twice the paths, four times the rays -> about half; a branched pixel
     keeps at least one extra path, a plain one whose paths never vary falls
-    to 1; fewer than SPLIT_PATHS_MIN paths in the window, or an unsplit
+    to 1; the window pools each pixel's deviations about its own mean (a
+    pixel's variance counts in its neighbours', pixels' different means do
+    not); fewer than SPLIT_PATHS_MIN paths in the window, or an unsplit
     pixel, keep their count; counts are integers in [1, SPLIT_PATHS_MAX];
     NaN/Inf in the sums give a defined map."""
     from mpg.chain_rates import SPLIT_PATHS_MAX, SPLIT_PATHS_MIN, DeltaSplitRefiner
     acc = _refiner_acc(n=16)
-    means = (1.0, 400.0)   # (a sample's cost far above a path's: counts of several)
+    means = (1.0, 40.0)   # (a sample's cost far above a path's: counts of several)
     ref = DeltaSplitRefiner(acc, means, objective="mse", branched=True)
     h = w = 32
     k = np.full((h, w), 2.0, np.float32)
@@ -471,7 +481,13 @@ def test_measured_counts_follow_eq3_from_the_render_paths(monkeypatch):
     var[16:24, 0:8] = 40.0     # D: V at 4 r
     var[16:24, 12:20] = 1000.0   # E: 25 V
     var[:, 28:] = 500.0        # unsplit
+    var[13, 4] = 9 * 40.0      # H: one pixel holds its window's variance
     ps, ps2, pn = _path_sums(var, 64)
+    # A's pixels at two means far apart: each pixel's deviations about its own mean count
+    ps22, ps222, _ = _path_sums(var, 64, mean=22.0)
+    cb = np.zeros((h, w), bool)
+    cb[0:8, 0:8] = (np.add.outer(np.arange(8), np.arange(8)) % 2) == 1
+    ps, ps2 = np.where(cb[..., None], ps22, ps), np.where(cb[..., None], ps222, ps2)
     pn[24:28, 0:8] = SPLIT_PATHS_MIN / 9.0 - 1.0 / 9.0   # F: too few paths even pooled
     prays = np.full((h, w), 6.0) * pn
     prays[16:24, 0:8] *= 4.0
@@ -483,6 +499,8 @@ def test_measured_counts_follow_eq3_from_the_render_paths(monkeypatch):
     m = k1 - 1.0
     a, b_, d, e = m[2:6, 2:6], m[2:6, 14:18], k1[18:22, 2:6] - 1.0, k1[18:22, 14:18]
     assert np.all(a == a[0, 0]) and a[0, 0] >= 2
+    # H: pooled over the window, its neighbours as A (one pixel's variance / 9 each)
+    assert np.all(m[12:15, 3:6] == a[0, 0])
     assert abs(b_[0, 0] / a[0, 0] - 2.0) <= 1.0 / a[0, 0] + 1e-9
     assert abs(d[0, 0] / a[0, 0] - 0.5) <= 1.0 / a[0, 0] + 1e-9
     assert np.all(e == e[0, 0]) and e[0, 0] - 1.0 >= 4.0 * a[0, 0]

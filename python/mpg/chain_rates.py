@@ -761,6 +761,8 @@ SPLIT_PATHS_MIN = 8.0
 SPLIT_PATHS_RADIUS = 1
 # ... and at most this many paths (the render's count maps allow 64)
 SPLIT_PATHS_MAX = 64
+# ... solved in at most this many rounds of Eq. 3 and the means it leads to
+SPLIT_PATHS_ROUNDS = 4
 
 
 class DeltaSplitRefiner:
@@ -787,7 +789,12 @@ class DeltaSplitRefiner:
     saw; in renders the pool 1.6x lower at 2 s, the slab 1.2x, the rest
     level (docs/results.md, forty-third session). Re-solving Eq. 3 per pixel with
     the render's samples pooled in was level at 1-2 s and lost on the
-    sphere and ring at 5 s (more split pixels for ~10 % fewer spp). The
+    sphere and ring at 5 s (more split pixels for ~10 % fewer spp). Then,
+    given the paths' record (update's `paths`, delta_split_measured), each
+    pixel the chosen map splits gets its count from the split's own extra
+    paths' variance and rays (measured_counts): not the training's one
+    plain path pooled with the render's, but the paths the count divides,
+    branched where they branch. The
     image stays unbiased: each pass's counts are fixed before it, and any
     count k >= 1 leaves a sample unbiased."""
 
@@ -864,7 +871,7 @@ class DeltaSplitRefiner:
         elsewhere k as given. The training's window saw the light's thin
         slivers in bumpy glass spread over 7x7 pixels and few of its samples
         met them; the render's extra paths measure each pixel's own (design-
-        notes "The branched paths' footprint"). Pooled, not per pixel: a
+        notes "The split's counts from its own paths"). Pooled, not per pixel: a
         sliver covering 7 % of a pixel is missed by 8 paths more than half
         the time. Any count fixed before a pass keeps the image unbiased."""
         split = k > 1.0
@@ -882,22 +889,31 @@ class DeltaSplitRefiner:
         wvx = np.where(ok, self.w * vx, 0.0)
         rx = np.where(ok, np.maximum(_box_blur(_finite(prays), r, total=True) / np.where(cnt > 0.0, cnt, 1.0), 1.0), 1.0)
         br = self.branched & ~self.plain
-        # the paths' count now (branched: the extra ones; plain: all k), and the
-        # means at the counts as they stand (the model's where not measured)
-        paths = np.where(br, np.maximum(k - 1.0, 1.0), np.maximum(k, 1.0))
         kept, cost = _split_terms(self.o, k, br)
-        part = np.where(ok, wvx / paths, np.where(split, wb * kept, wb))
-        v = max(self.v_mean - self.v_delta, 0.0) + float(np.mean(part))
-        c = self.c_mean + float(np.mean(np.where(ok, rx * np.maximum(k - 1.0, 0.0), np.where(split, cost, 0.0))))
+        # (the unmeasured pixels' parts, the model's, at the counts as they stand)
+        rest_v = max(self.v_mean - self.v_delta, 0.0) + float(np.mean(np.where(ok, 0.0, np.where(split, wb * kept, wb))))
+        rest_c = self.c_mean + float(np.mean(np.where(ok, 0.0, np.where(split, cost, 0.0))))
         k_new = k.astype(np.float64)
-        if v > 0.0 and c > 0.0:
+        # Eq. 3 at the means it leads to: a few rounds of the fixed point,
+        # from the counts as they stand (one round weighed a count of 10
+        # against the means at 2, which hold that pixel's variance 9 times)
+        for _ in range(SPLIT_PATHS_ROUNDS):
+            # the paths' count (branched: the extra ones; plain: all k)
+            paths = np.where(br, np.maximum(k_new - 1.0, 1.0), np.maximum(k_new, 1.0))
+            v = rest_v + float(np.mean(np.where(ok, wvx / paths, 0.0)))
+            c = rest_c + float(np.mean(np.where(ok, rx * np.maximum(k_new - 1.0, 0.0), 0.0)))
+            if not (v > 0.0 and c > 0.0):
+                break
             x = np.sqrt(wvx * c / (rx * v))
             x = np.rint(np.where(np.isfinite(x), x, 1.0))
             # (a branched pixel keeps at least one extra path: with none it
             # falls back on its own plain path, whose variance the check
             # above weighed; a plain pixel's count is Eq. 3's whole)
-            k_new = np.where(ok, np.clip(np.where(br, np.maximum(x, 1.0) + 1.0, x), 1.0, float(SPLIT_PATHS_MAX)),
-                             k_new)
+            k_next = np.where(ok, np.clip(np.where(br, np.maximum(x, 1.0) + 1.0, x), 1.0, float(SPLIT_PATHS_MAX)),
+                              k_new)
+            if np.array_equal(k_next, k_new):
+                break
+            k_new = k_next
         info = {"delta_split_online_measured": float(np.mean(ok[split])) if np.any(split) else 0.0,
                 "delta_split_online_measured_mean": float(np.mean(k_new[ok])),
                 "delta_split_online_measured_max": float(np.max(k_new[ok]))}
