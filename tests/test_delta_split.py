@@ -467,7 +467,8 @@ def test_measured_counts_follow_eq3_from_the_render_paths(monkeypatch):
     to 1; the window pools each pixel's deviations about its own mean (a
     pixel's variance counts in its neighbours', pixels' different means do
     not); fewer than SPLIT_PATHS_MIN paths in the window, or an unsplit
-    pixel, keep their count; counts are integers in [1, SPLIT_PATHS_MAX];
+    pixel, keep their count; a pixel split of 2 halves the extra paths the
+    variance asks for; counts are integers in [1, SPLIT_PATHS_MAX];
     NaN/Inf in the sums give a defined map."""
     from mpg.chain_rates import SPLIT_PATHS_MAX, SPLIT_PATHS_MIN, DeltaSplitRefiner
     acc = _refiner_acc(n=16)
@@ -518,6 +519,11 @@ def test_measured_counts_follow_eq3_from_the_render_paths(monkeypatch):
     bad_s2[4, 4, 1] = np.inf
     k2, _ = ref.measured_counts(k, wb, bad_s, bad_s2, pn, prays)
     assert np.isfinite(k2).all() and k2.min() >= 1 and k2.max() <= SPLIT_PATHS_MAX
+    # a pixel split: kpix sub-samples each trace the count -> about 1/kpix of the extra paths
+    kpix = np.ones((h, w), np.float32)
+    kpix[0:8, 12:20] = 2.0   # B at 4 V, each sample averaging twice the paths: as A
+    k5, _ = ref.measured_counts(k, wb, ps, ps2, pn, prays, kpix)
+    assert abs((k5[2:6, 14:18] - 1.0)[0, 0] / (k5[2:6, 2:6] - 1.0)[0, 0] - 1.0) <= 1.0 / a[0, 0] + 1e-9
     # the cap
     import mpg.chain_rates as cr
     monkeypatch.setattr(cr, "SPLIT_PATHS_MAX", 3)
@@ -659,8 +665,9 @@ def test_render_checks_the_delta_split_from_2_spp_and_the_pixel_split_from_4(sph
     def grefine(ds, ds2, n, paths):
         order.append(("delta", n))
         assert ds.shape == (RES, RES, 3) and np.all(ds2 >= 0)
-        # (the split's extra paths so far: sums, squares, count, rays)
+        # (the split's extra paths so far: sums, squares, count, rays; the pixel split map)
         assert paths[0].shape == (RES, RES, 3) and paths[2].shape == (RES, RES) and np.all(paths[3] >= paths[2])
+        assert paths[4] is None
         return np.full((RES, RES), 1.0 + len(order), np.float32), None, {"delta_split_online_updates": n}
 
     def frefine(ks, ks2, kn, n):

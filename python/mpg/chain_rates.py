@@ -839,8 +839,9 @@ class DeltaSplitRefiner:
         the per-pixel sums and squares (height x width x 3) of its samples'
         own paths' light seen through delta scattering only; paths (sums,
         squares, count, rays per pixel of the split's extra paths' values so
-        far, PassResult::split_path_*) or None: each split pixel's count
-        from its extra paths' own variance (measured_counts)."""
+        far, PassResult::split_path_*, and the pixel split map they last
+        ran with or None) or None: each split pixel's count from its extra
+        paths' own variance (measured_counts)."""
         if n < 2:
             raise ValueError("the delta split's check needs at least 2 samples of the render")
         self.updates += 1
@@ -859,7 +860,7 @@ class DeltaSplitRefiner:
         return (*self.maps(k), info)
 
     def measured_counts(self, k: np.ndarray, wb: np.ndarray, ps: np.ndarray, ps2: np.ndarray,
-                        pn: np.ndarray, prays: np.ndarray) -> tuple[np.ndarray, dict]:
+                        pn: np.ndarray, prays: np.ndarray, kpix: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
         """Counts k with each split pixel's count set by its extra paths' own
         variance V_x and rays r_x as the render measured them so far (ps /
         ps2 over pn paths, prays their rays; pooled over the
@@ -867,7 +868,10 @@ class DeltaSplitRefiner:
         minimising F = mean(wV) mean(C) (Eq. 3 again), a branched pixel's m =
         k - 1 extra paths (the sample's own left out) m = sqrt(w V_x mean(C)
         / (r_x mean(wV))), a plain pixel's k paths (its own included) k =
-        sqrt(w V_x mean(C) / (r_x mean(wV))), rounded, in [1, SPLIT_PATHS_MAX];
+        sqrt(w V_x mean(C) / (r_x mean(wV))), rounded, in [1, SPLIT_PATHS_MAX]
+        (with a pixel split, kpix sub-samples a sample each tracing the
+        count, 1/kpix of that: the sample averages kpix times the paths at
+        kpix times their rays);
         elsewhere k as given. The training's window saw the light's thin
         slivers in bumpy glass spread over 7x7 pixels and few of its samples
         met them; the render's extra paths measure each pixel's own (design-
@@ -894,17 +898,20 @@ class DeltaSplitRefiner:
         rest_v = max(self.v_mean - self.v_delta, 0.0) + float(np.mean(np.where(ok, 0.0, np.where(split, wb * kept, wb))))
         rest_c = self.c_mean + float(np.mean(np.where(ok, 0.0, np.where(split, cost, 0.0))))
         k_new = k.astype(np.float64)
+        # (a pixel split's kpix sub-samples each trace the count: kpix times the
+        # paths a sample, at kpix times their rays)
+        kp = np.ones(k.shape) if kpix is None else np.maximum(np.floor(np.asarray(kpix, dtype=float)), 1.0)
         # Eq. 3 at the means it leads to: a few rounds of the fixed point,
         # from the counts as they stand (one round weighed a count of 10
         # against the means at 2, which hold that pixel's variance 9 times)
         for _ in range(SPLIT_PATHS_ROUNDS):
             # the paths' count (branched: the extra ones; plain: all k)
             paths = np.where(br, np.maximum(k_new - 1.0, 1.0), np.maximum(k_new, 1.0))
-            v = rest_v + float(np.mean(np.where(ok, wvx / paths, 0.0)))
-            c = rest_c + float(np.mean(np.where(ok, rx * np.maximum(k_new - 1.0, 0.0), 0.0)))
+            v = rest_v + float(np.mean(np.where(ok, wvx / (kp * paths), 0.0)))
+            c = rest_c + float(np.mean(np.where(ok, kp * rx * np.maximum(k_new - 1.0, 0.0), 0.0)))
             if not (v > 0.0 and c > 0.0):
                 break
-            x = np.sqrt(wvx * c / (rx * v))
+            x = np.sqrt(wvx * c / (rx * v)) / kp
             x = np.rint(np.where(np.isfinite(x), x, 1.0))
             # (a branched pixel keeps at least one extra path: with none it
             # falls back on its own plain path, whose variance the check

@@ -373,7 +373,8 @@ def render(
         ds / ds2 the per-pixel sums and squares of the light each sample's own
         path saw through delta scattering only (RenderJob's record_delta), over
         the n spp so far; paths = (sums, squares, count, rays) per pixel of
-        the split's extra paths' values so far (PassResult::split_path_*).
+        the split's extra paths' values so far (PassResult::split_path_*),
+        and the pixel split map those passes last ran with (or None).
         mpg's chain_rates.DeltaSplitRefiner: the maps it returns
         (None: no split; all branched) run from that pass on.
     """
@@ -481,7 +482,7 @@ def render(
                 if delta_due:
                     # (first: the pixel split's model counts the delta split's cost)
                     delta_split_map, delta_branch_map, pending_dinfo = delta_split_refine(
-                        ds_acc, ds_acc2, done, (sp_acc, sp_acc2, sp_n, sp_rays))
+                        ds_acc, ds_acc2, done, (sp_acc, sp_acc2, sp_n, sp_rays, pixel_split_map))
                     drefine_at = 2 * done
                 if split_due:
                     pixel_split_map, pending_info = pixel_split_refine(ks, ks2, kn, done)
