@@ -471,3 +471,28 @@ def test_reference_fill(env, tmp_path):
     with pytest.raises(BenchError, match="needs a Mitsuba reference"):
         reference.recipe(sc, time=1, spp=None, passes=2, seed=1, method="mpg",
                          integrator="path", fill="sms_star")
+
+
+def test_pass_overhead_script(tmp_path):
+    """bench/pass_overhead.py: the same spp as 1-spp passes and as longer
+    ones, per thread count; positive, finite times, their ratio and the
+    overhead a pass written to the JSON; an --spp that --long does not divide
+    is refused."""
+    import pathlib
+    import subprocess
+    import sys
+    script = pathlib.Path(__file__).resolve().parents[1] / "bench" / "pass_overhead.py"
+    dest = tmp_path / "po.json"
+    base = [sys.executable, str(script), "--scene", "sphere", "--spp", "4", "--long", "2", "--repeats", "1"]
+    out = subprocess.run(base + ["--threads", "1", "2", "--out", str(dest)],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    d = json.loads(dest.read_text())
+    finite_numbers(d)
+    assert set(d["threads"]) == {"1", "2"}
+    for row in d["threads"].values():
+        assert row["short_seconds"] > 0 and row["long_seconds"] > 0
+        assert row["ratio"] == pytest.approx(row["short_seconds"] / row["long_seconds"])
+        assert row["overhead_ms_per_pass"] == pytest.approx(1000 * (row["short_seconds"] - row["long_seconds"]) / 4)
+    bad = subprocess.run(base[:4] + ["--spp", "5", "--long", "2"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "multiple" in bad.stderr
