@@ -16,7 +16,6 @@ bench/results/pass_overhead.json (or --out)."""
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import pathlib
 import sys
@@ -54,6 +53,7 @@ def main() -> int:
         ap.error("--repeats must be at least 1")
     import mpg
     from mpg import _core
+    from mpg.bench.report import write_json
 
     path = ROOT / "scenes" / "eval" / f"{args.scene}.xml"
     if not path.exists():
@@ -81,7 +81,7 @@ def main() -> int:
               f"({row['ms_per_spp_long']:.1f} ms a spp in long passes)")
     dest = pathlib.Path(args.out) if args.out else ROOT / "bench" / "results" / "pass_overhead.json"
     dest.parent.mkdir(parents=True, exist_ok=True)
-    dest.write_text(json.dumps(out, indent=2))
+    write_json(str(dest), out)
     print(f"wrote {dest}")
     return 0
 

@@ -71,7 +71,7 @@ void RenderJob::run() {
   const bool delta_rec = costs || cfg_.record_delta;
   constexpr int NC = Stats::kClasses;
   const bool split_rec = cfg_.record_delta && !costs;   // (PassResult::split_path_*)
-  if (cfg_.record_delta && !costs) {
+  if (split_rec) {
     result_.delta_sum.assign(size_t(W) * H * 3, 0.0);
     result_.delta_sum_sq.assign(size_t(W) * H * 3, 0.0);
     result_.split_path_sum.assign(size_t(W) * H * 3, 0.0);
@@ -269,14 +269,16 @@ void RenderJob::run() {
                   st.delta_split_paths++;
                   const Color Dj = integrator_->Li_delta(scene, o2, d2, tmin2, tmax2, rng, st, pbranch);
                   D += Dj;
-                  if (split_rec && std::isfinite(Dj.x) && std::isfinite(Dj.y) && std::isfinite(Dj.z)) {
-                    for (int c = 0; c < 3; ++c) {
-                      ps[c] += Dj[c];
-                      ps2[c] += double(Dj[c]) * Dj[c];
+                  if (split_rec) {
+                    prays += double(st.rays + st.shadow_rays + st.camera_rays - prays0);
+                    if (is_finite(Dj)) {
+                      for (int c = 0; c < 3; ++c) {
+                        ps[c] += Dj[c];
+                        ps2[c] += double(Dj[c]) * Dj[c];
+                      }
+                      pn += 1.0;
                     }
-                    pn += 1.0;
                   }
-                  if (split_rec) prays += double(st.rays + st.shadow_rays + st.camera_rays - prays0);
                 }
                 Ls += D * (1.f / float(pbranch ? ksplit - 1 : ksplit));
                 if (classes) cls[Stats::kClassDelta] += D * (1.f / float(pbranch ? ksplit - 1 : ksplit));

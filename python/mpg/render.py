@@ -556,11 +556,10 @@ def render(
                 ran_delta, drefine_info = (delta_split_map, delta_branch_map), pending_dinfo
                 ds_acc += r["delta_sum"]
                 ds_acc2 += r["delta_sum_sq"]
-                if "split_path_n" in r:
-                    sp_acc += r["split_path_sum"]
-                    sp_acc2 += r["split_path_sum_sq"]
-                    sp_n += r["split_path_n"]
-                    sp_rays += r["split_path_rays"]
+                sp_acc += r["split_path_sum"]
+                sp_acc2 += r["split_path_sum_sq"]
+                sp_n += r["split_path_n"]
+                sp_rays += r["split_path_rays"]
             if r["lt_photons"] > 0:
                 lt_acc = r["lt_sum"] if lt_acc is None else lt_acc + r["lt_sum"]
                 lt_acc2 = r["lt_sum_sq"] if lt_acc2 is None else lt_acc2 + r["lt_sum_sq"]
